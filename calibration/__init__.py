@@ -1,0 +1,1 @@
+"""Camera intrinsics and poses (pycolmap), turntable registration, world light positions, exports."""

@@ -1,0 +1,1 @@
+"""Stage description, raw-capture layout, HDR frame I/O, capture validation and the simulator."""

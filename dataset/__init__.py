@@ -1,0 +1,1 @@
+"""Train/test splits as data, scene bounds, and streaming ray shards for the trainer."""

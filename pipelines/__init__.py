@@ -1,0 +1,1 @@
+"""Configuration, stage orchestration on dask, resumability and the `lightstage` command line."""

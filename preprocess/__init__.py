@@ -1,0 +1,1 @@
+"""4x HDR downscale, per-view streaming statistics, segmentation and flare scores."""

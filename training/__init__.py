@@ -1,0 +1,1 @@
+"""The relighting model (volume-rendered radiance-transfer gradient), losses, trainer, eval, relighting, meshes."""
