@@ -21,6 +21,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _stage_preset(args: argparse.Namespace) -> int:
     import yaml
+
     from lightstage.capture.presets import stage_preset
 
     stage = stage_preset(args.name)

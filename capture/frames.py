@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from lightstage.atomic import atomic_path
 from lightstage.errors import LightstageError
 

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+
 from lightstage.atomic import write_text_atomic
 from lightstage.capture.stage import Stage, load_stage
 from lightstage.errors import LightstageError

@@ -4,6 +4,7 @@ versions of the same geometry (fewer cameras/lights, smaller sensors) for the si
 from __future__ import annotations
 
 import numpy as np
+
 from lightstage.cameras import look_at
 from lightstage.capture.stage import CameraSpec, GroupSpec, LightSpec, Stage, validate_stage
 from lightstage.errors import LightstageError

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+
 from lightstage.atomic import write_text_atomic
 from lightstage.cameras import PinholeCamera
 from lightstage.errors import LightstageError

@@ -18,10 +18,12 @@ from lightstage.errors import LightstageError
 # The packages that contribute subcommands, in the order of the pipeline.
 COMMAND_MODULES = (
     "lightstage.capture.cli",
+    "lightstage.capture.simulate_cli",
     "lightstage.preprocess.cli",
     "lightstage.calibration.cli",
     "lightstage.dataset.cli",
     "lightstage.training.cli",
+    "lightstage.training.use_cli",
     "lightstage.pipelines.commands",
 )
 

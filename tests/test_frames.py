@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from lightstage.capture.frames import read_exr, read_exr_header, read_image, write_exr, write_image
 from lightstage.errors import LightstageError
 

@@ -7,6 +7,7 @@ import copy
 import numpy as np
 import pytest
 import yaml
+
 from lightstage.capture.presets import paper_stage, stage_preset
 from lightstage.capture.stage import load_stage, stage_from_dict
 from lightstage.errors import LightstageError

@@ -1,0 +1,109 @@
+"""The layout of a work directory (WORK), in one place: every stage reads and writes its files through here.
+
+```
+WORK/
+  capture.txt                         # path of the raw capture this work directory processes
+  manifest.json                       # capture validation manifest
+  reports/<stage>.json                # per-stage record: config hash, inputs, counts, timings, errors
+  preprocess/frames/<g>/<c>/<l>.exr   # 4x downscaled linear HDR, channels R G B + S (1 = saturated)
+  preprocess/views/<g>/<c>/...        # mean.exr, stats.npz, wellit.png, mask.png, zones.png, overlay.png
+  calibration/calibration.json        # per-view K, dist, R, t; per-(group, light) world positions; axis, yaws
+  calibration/colmap/, transforms.json, layout.png
+  split.json                          # train/test frames as data
+  bounds.json                         # scene normalisation (centre, scale)
+  shards/                             # ray shards + manifest.json; shards/test/ for evaluation images
+  train/                              # checkpoints, tensorboard, previews
+  eval/                               # side-by-side PNGs; metrics in reports/eval.json
+```
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from lightstage.capture.layout import FrameId, ViewId
+
+# Zone labels of the per-view zone map (used by preprocess, shards and the sampler).
+ZONE_BACKGROUND = 0
+ZONE_BAND = 1
+ZONE_FOREGROUND = 2
+DOWNSCALE = 4
+
+
+@dataclass(frozen=True)
+class WorkDir:
+    """Paths inside a work directory."""
+
+    root: Path
+
+    @classmethod
+    def at(cls, root: str | os.PathLike[str]) -> WorkDir:
+        return cls(Path(root))
+
+    # reports
+    def report(self, stage: str) -> Path:
+        return self.root / "reports" / f"{stage}.json"
+
+    @property
+    def manifest(self) -> Path:
+        return self.root / "manifest.json"
+
+    @property
+    def capture_pointer(self) -> Path:
+        return self.root / "capture.txt"
+
+    # preprocess
+    @property
+    def preprocess_dir(self) -> Path:
+        return self.root / "preprocess"
+
+    def frame(self, frame: FrameId) -> Path:
+        return self.preprocess_dir / "frames" / frame.group / frame.camera / f"{frame.light:03d}.exr"
+
+    def view_dir(self, view: ViewId) -> Path:
+        return self.preprocess_dir / "views" / view.group / view.camera
+
+    def mask(self, view: ViewId) -> Path:
+        return self.view_dir(view) / "mask.png"
+
+    def zones(self, view: ViewId) -> Path:
+        return self.view_dir(view) / "zones.png"
+
+    def wellit(self, view: ViewId) -> Path:
+        return self.view_dir(view) / "wellit.png"
+
+    def mean_image(self, view: ViewId) -> Path:
+        return self.view_dir(view) / "mean.exr"
+
+    # calibration
+    @property
+    def calibration_dir(self) -> Path:
+        return self.root / "calibration"
+
+    @property
+    def calibration(self) -> Path:
+        return self.calibration_dir / "calibration.json"
+
+    # split, bounds, shards
+    @property
+    def split(self) -> Path:
+        return self.root / "split.json"
+
+    @property
+    def bounds(self) -> Path:
+        return self.root / "bounds.json"
+
+    @property
+    def shards_dir(self) -> Path:
+        return self.root / "shards"
+
+    # training and evaluation
+    @property
+    def train_dir(self) -> Path:
+        return self.root / "train"
+
+    @property
+    def eval_dir(self) -> Path:
+        return self.root / "eval"
