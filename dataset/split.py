@@ -1,0 +1,684 @@
+"""Train/test splits as data: protocols (paper, synthetic, custom YAML) resolved against a stage into
+`WORK/split.json`, with overlap validation and preprocess rejections excluded and counted.
+
+Light and camera indices are 0-based everywhere here; the paper's 1-based numbers pass through
+`lightstage.lights.paper_number_to_index` only.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from lightstage.atomic import write_json_atomic
+from lightstage.capture.layout import FrameId, ViewId
+from lightstage.capture.stage import Stage
+from lightstage.errors import LightstageError
+from lightstage.lights import paper_number_to_index
+from lightstage.workdir import WorkDir
+
+SPLIT_FORMAT_VERSION = 1
+
+# The paper (§5, real data): 331 lights, 75 train lights = linspace(1, 331, 75) truncated, 10 test lights.
+PAPER_NUM_LIGHTS = 331
+PAPER_NUM_CAMERAS = 20
+PAPER_NUM_TRAIN_LIGHTS = 75
+PAPER_TEST_LIGHT_NUMBERS = (43, 73, 105, 137, 169, 203, 233, 265, 297, 329)  # 1-based, as printed
+PAPER_TEST_CAMERA_FRACTION = 2 / 20  # cameras 19-20 of 20
+# The paper (§5, synthetic): rows 2..8 (1-based) of a 16x32 lat-long grid, every other direction held out.
+ENVMAP_ROWS, ENVMAP_COLS = 16, 32
+SYNTHETIC_ROWS = tuple(range(2, 9))  # 1-based rows, upper hemisphere
+SYNTHETIC_TEST_LIGHTS = 10
+SYNTHETIC_TEST_VIEWS = 10
+
+PROTOCOLS = ("paper", "synthetic")
+
+
+# ---- the split record ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class FrameSet:
+    """Frames as per-group camera and light lists (a cross product per group), minus explicit exclusions."""
+
+    groups: dict[str, tuple[tuple[str, ...], tuple[int, ...]]]  # group -> (camera ids, light indices)
+    excluded: frozenset[FrameId] = frozenset()
+
+    def frames(self) -> Iterator[FrameId]:
+        """Every frame of the set, group -> camera -> light order, exclusions skipped."""
+        for g, (cams, lights) in self.groups.items():
+            for c in cams:
+                for lt in lights:
+                    f = FrameId(g, c, lt)
+                    if f not in self.excluded:
+                        yield f
+
+    def views(self) -> list[ViewId]:
+        """Every (group, camera) of the set with at least one frame listed."""
+        return [ViewId(g, c) for g, (cams, lights) in self.groups.items() if lights for c in cams]
+
+    def nominal_count(self) -> int:
+        return sum(len(c) * len(lt) for c, lt in self.groups.values())
+
+    def count(self) -> int:
+        return self.nominal_count() - len(self.excluded)
+
+    def cameras(self) -> set[str]:
+        return {c for cams, _ in self.groups.values() for c in cams}
+
+    def lights(self) -> set[int]:
+        return {lt for _, lights in self.groups.values() for lt in lights}
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "groups": {
+                g: {"cameras": list(c), "lights": [int(x) for x in lt]} for g, (c, lt) in self.groups.items()
+            },
+            "excluded": sorted(str(f) for f in self.excluded),
+        }
+
+    @classmethod
+    def from_dict(cls, d: Any, where: str) -> FrameSet:
+        if not isinstance(d, dict) or not isinstance(d.get("groups"), dict):
+            raise LightstageError(f"{where}: expected a mapping with 'groups'")
+        groups = {}
+        for g, v in d["groups"].items():
+            if (
+                not isinstance(v, dict)
+                or not isinstance(v.get("cameras"), list)
+                or not isinstance(v.get("lights"), list)
+            ):
+                raise LightstageError(f"{where}.groups.{g}: expected {{cameras: [...], lights: [...]}}")
+            groups[str(g)] = (tuple(str(c) for c in v["cameras"]), tuple(int(x) for x in v["lights"]))
+        excluded = frozenset(parse_frame_id(s, f"{where}.excluded") for s in d.get("excluded", []))
+        return cls(groups, excluded)
+
+
+@dataclass(frozen=True)
+class StageInfo:
+    """What a split needs of a stage: names and counts (so a split file validates without the stage)."""
+
+    name: str
+    camera_ids: tuple[str, ...]
+    num_lights: int
+    groups: tuple[str, ...]
+
+    @classmethod
+    def of(cls, stage: Stage) -> StageInfo:
+        return cls(stage.name, tuple(stage.camera_ids), len(stage.lights), tuple(stage.group_names))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "cameras": list(self.camera_ids),
+            "num_lights": self.num_lights,
+            "groups": list(self.groups),
+        }
+
+
+@dataclass(frozen=True)
+class Split:
+    """A resolved train/test split of one stage."""
+
+    protocol: str
+    parameters: dict[str, Any]
+    rule: str
+    stage: StageInfo
+    train: FrameSet
+    test: FrameSet
+    source: str = "split"
+
+    def counts(self) -> dict[str, int]:
+        return {
+            "train": self.train.count(),
+            "test": self.test.count(),
+            "train_excluded": len(self.train.excluded),
+            "test_excluded": len(self.test.excluded),
+            "train_views": len(self.train.views()),
+            "test_views": len(self.test.views()),
+            "train_cameras": len(self.train.cameras()),
+            "test_cameras": len(self.test.cameras()),
+            "train_lights": len(self.train.lights()),
+            "test_lights": len(self.test.lights()),
+        }
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "format_version": SPLIT_FORMAT_VERSION,
+            "protocol": {"name": self.protocol, "parameters": self.parameters, "rule": self.rule},
+            "stage": self.stage.to_dict(),
+            "counts": self.counts(),
+            "train": self.train.to_dict(),
+            "test": self.test.to_dict(),
+        }
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        write_json_atomic(path, self.to_dict())
+
+
+def load_split(path: str | os.PathLike[str]) -> Split:
+    """Read and validate a split.json."""
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text())
+    except OSError as e:
+        raise LightstageError(f"{path}: cannot read split ({e.strerror}); run `lightstage split`") from None
+    except json.JSONDecodeError as e:
+        raise LightstageError(f"{path}: invalid JSON ({e})") from None
+    if not isinstance(d, dict) or d.get("format_version") != SPLIT_FORMAT_VERSION:
+        raise LightstageError(
+            f"{path}: unsupported split format {d.get('format_version') if isinstance(d, dict) else d!r}"
+        )
+    try:
+        st = d["stage"]
+        stage = StageInfo(str(st["name"]), tuple(st["cameras"]), int(st["num_lights"]), tuple(st["groups"]))
+        p = d["protocol"]
+        split = Split(
+            str(p["name"]),
+            dict(p.get("parameters", {})),
+            str(p.get("rule", "")),
+            stage,
+            FrameSet.from_dict(d["train"], f"{path}: train"),
+            FrameSet.from_dict(d["test"], f"{path}: test"),
+            str(path),
+        )
+    except (KeyError, TypeError, ValueError) as e:
+        raise LightstageError(f"{path}: malformed split ({type(e).__name__}: {e})") from None
+    validate_split(split)
+    return split
+
+
+def parse_frame_id(text: Any, where: str) -> FrameId:
+    """'g/c/lll' -> FrameId."""
+    parts = str(text).split("/")
+    if len(parts) != 3 or not parts[2].isdigit():
+        raise LightstageError(f"{where}: {text!r} is not a frame id 'group/camera/light'")
+    return FrameId(parts[0], parts[1], int(parts[2]))
+
+
+def validate_split(split: Split) -> None:
+    """Raise LightstageError if test lights or cameras appear in training, or anything is not on the stage."""
+    where = split.source
+    st = split.stage
+    for name, fs in (("train", split.train), ("test", split.test)):
+        for g, (cams, lights) in fs.groups.items():
+            if g not in st.groups:
+                raise LightstageError(
+                    f"{where}: {name}: group {g!r} is not on stage {st.name!r} ({len(st.groups)} groups)"
+                )
+            bad_c = [c for c in cams if c not in st.camera_ids]
+            if bad_c:
+                raise LightstageError(
+                    f"{where}: {name}: camera(s) {', '.join(bad_c)} not on stage {st.name!r} "
+                    f"({len(st.camera_ids)} cameras: {st.camera_ids[0]}..{st.camera_ids[-1]})"
+                )
+            bad_l = [lt for lt in lights if not 0 <= lt < st.num_lights]
+            if bad_l:
+                raise LightstageError(
+                    f"{where}: {name}: light(s) {bad_l[:5]} not on stage {st.name!r} "
+                    f"(0-based indices 0..{st.num_lights - 1})"
+                )
+            if len(set(cams)) != len(cams) or len(set(lights)) != len(lights):
+                raise LightstageError(f"{where}: {name}: group {g}: duplicate cameras or lights")
+        if fs.count() <= 0:
+            raise LightstageError(f"{where}: the {name} set is empty")
+    overlap_l = split.train.lights() & split.test.lights()
+    if overlap_l:
+        raise LightstageError(
+            f"{where}: test light(s) {sorted(overlap_l)[:10]} (0-based) also appear in training; "
+            "test lights must be unseen"
+        )
+    overlap_c = split.train.cameras() & split.test.cameras()
+    if overlap_c:
+        raise LightstageError(
+            f"{where}: test camera(s) {', '.join(sorted(overlap_c))} also appear in training; test views must be unseen"
+        )
+
+
+# ---- protocols ----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Protocol:
+    """What a protocol asks for; `resolve` turns it into a Split of a particular stage.
+
+    Cameras/lights: an int (a count, placed by the documented rule), a list (explicit: 0-based indices, or camera
+    ids), or 'rest' (train only: everything the test set does not use). `light_rule`: 'paper' places counts
+    like the paper's lights; 'hemisphere' maps the synthetic 7x32 upper-hemisphere grid onto the stage's lights.
+    """
+
+    name: str
+    train_cameras: Any = "rest"
+    test_cameras: Any = None  # None: the paper's share (10%, >= 1)
+    train_lights: Any = None  # None: the paper's share (75/331, >= 1)
+    test_lights: Any = None  # None: the paper's share (10/331, >= 1)
+    train_groups: Any = "all"
+    test_groups: Any = "all"
+    test_views: int | None = None  # keep only this many test views (evenly spread), None: all
+    light_rule: str = "paper"
+    parameters: dict[str, Any] = field(default_factory=dict)
+
+
+def builtin_protocol(name: str) -> Protocol:
+    """The paper's real-data protocol or its synthetic (hemisphere) protocol."""
+    if name == "paper":
+        return Protocol("paper")
+    if name == "synthetic":
+        return Protocol("synthetic", light_rule="hemisphere", test_views=SYNTHETIC_TEST_VIEWS)
+    raise LightstageError(f"unknown protocol {name!r} (built in: {', '.join(PROTOCOLS)}; or a YAML file)")
+
+
+_YAML_KEYS = {"name", "base", "cameras", "lights", "groups", "test_views"}
+
+
+def protocol_from_yaml(path: str | os.PathLike[str]) -> Protocol:
+    """A custom protocol file: name, base (paper|synthetic), cameras/lights/groups {train, test}, test_views."""
+    path = Path(path)
+    try:
+        d = yaml.safe_load(path.read_text())
+    except OSError as e:
+        raise LightstageError(f"{path}: cannot read protocol ({e.strerror})") from None
+    except yaml.YAMLError as e:
+        raise LightstageError(f"{path}: invalid YAML: {e}") from None
+    return protocol_from_dict(d, str(path))
+
+
+def protocol_from_dict(d: Any, source: str = "protocol") -> Protocol:
+    """Build a Protocol from a parsed mapping (see `protocol_from_yaml`); unknown keys are errors."""
+    if not isinstance(d, dict):
+        raise LightstageError(f"{source}: expected a mapping")
+    unknown = set(d) - _YAML_KEYS
+    if unknown:
+        raise LightstageError(
+            f"{source}: unknown key(s) {', '.join(sorted(unknown))} (known: {', '.join(sorted(_YAML_KEYS))})"
+        )
+    base = builtin_protocol(str(d.get("base", "paper")))
+    kw: dict[str, Any] = {"name": str(d.get("name", Path(source).stem)), "light_rule": base.light_rule}
+    kw["test_views"] = base.test_views
+    for key in ("cameras", "lights", "groups"):
+        sub = d.get(key, {}) or {}
+        if not isinstance(sub, dict) or set(sub) - {"train", "test"}:
+            raise LightstageError(f"{source}: {key}: expected a mapping with 'train' and/or 'test'")
+        for part in ("train", "test"):
+            if part in sub:
+                v = sub[part]
+                ok = (
+                    (isinstance(v, int) and not isinstance(v, bool))
+                    or isinstance(v, list)
+                    or v in ("rest", "all")
+                )
+                if not ok:
+                    raise LightstageError(
+                        f"{source}: {key}.{part}: expected a count, a list or 'rest', got {v!r}"
+                    )
+                kw[f"{part}_{key}"] = v
+    lights = d.get("lights") or {}
+    if (
+        base.light_rule == "hemisphere"
+        and "test" not in lights
+        and not isinstance(lights.get("train", []), list)
+    ):
+        raise LightstageError(
+            f"{source}: lights.train: with base synthetic and no lights.test, give an explicit list"
+        )
+    if "test_views" in d:
+        tv = d["test_views"]
+        if tv is not None and (not isinstance(tv, int) or isinstance(tv, bool) or tv < 1):
+            raise LightstageError(f"{source}: test_views: expected a positive integer or null, got {tv!r}")
+        kw["test_views"] = tv
+    params = {k: v for k, v in d.items() if k != "name"}
+    return Protocol(parameters=params, **kw)
+
+
+def paper_light_counts(num_lights: int) -> tuple[int, int]:
+    """(train, test) light counts on a stage: the paper's 75 and 10 of 331, scaled by num_lights (each >= 1)."""
+    n_train = max(1, round(PAPER_NUM_TRAIN_LIGHTS * num_lights / PAPER_NUM_LIGHTS))
+    n_test = max(1, round(len(PAPER_TEST_LIGHT_NUMBERS) * num_lights / PAPER_NUM_LIGHTS))
+    return n_train, n_test
+
+
+def place_test_lights(n: int, num_lights: int) -> list[int]:
+    """n test lights: the paper's test lights (a spread subset when n < 10) scaled to the stage's light count;
+    beyond 10, evenly spaced. Identity on a 331-light stage with n = 10."""
+    if n <= len(PAPER_TEST_LIGHT_NUMBERS):
+        ranks = [int((k + 0.5) * len(PAPER_TEST_LIGHT_NUMBERS) / n) for k in range(n)]
+        paper = [paper_number_to_index(PAPER_TEST_LIGHT_NUMBERS[r]) for r in ranks]
+        wanted = [round(p * (num_lights - 1) / (PAPER_NUM_LIGHTS - 1)) for p in paper]
+    else:
+        wanted = [int((k + 0.5) * num_lights / n) for k in range(n)]
+    return _place(wanted, num_lights, taken=set())
+
+
+def place_train_lights(n: int, num_lights: int, test: set[int]) -> list[int]:
+    """n train lights: linspace(1, L, n) truncated (1-based, as the paper), moved to the nearest free light on a
+    collision with a test light. Exactly the paper's 75 on a 331-light stage."""
+    numbers = np.linspace(1, num_lights, n).astype(int)
+    return _place([paper_number_to_index(int(x)) for x in numbers], num_lights, taken=set(test))
+
+
+def _place(wanted: list[int], num_lights: int, taken: set[int]) -> list[int]:
+    if len(wanted) + len(taken) > num_lights:
+        raise LightstageError(
+            f"protocol asks for {len(wanted)} lights beside {len(taken)} others; the stage has {num_lights}"
+        )
+    out: list[int] = []
+    for w in wanted:
+        for d in range(num_lights):
+            for cand in (w - d, w + d):
+                if 0 <= cand < num_lights and cand not in taken:
+                    break
+            else:
+                continue
+            break
+        taken.add(cand)
+        out.append(cand)
+    return sorted(out)
+
+
+def hemisphere_grid() -> tuple[np.ndarray, np.ndarray]:
+    """(224, 3) unit directions of rows 2..8 (1-based) x 32 columns of a 16x32 lat-long grid (cell centres, +z up),
+    and a bool mask of the held-out half (checkerboard: (row + col) odd)."""
+    dirs, held = [], []
+    for r in SYNTHETIC_ROWS:
+        theta = np.deg2rad((r - 0.5) * 180.0 / ENVMAP_ROWS)
+        for c in range(ENVMAP_COLS):
+            phi = np.deg2rad((c + 0.5) * 360.0 / ENVMAP_COLS)
+            dirs.append([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
+            held.append((r + c) % 2 == 1)
+    return np.asarray(dirs), np.asarray(held)
+
+
+def hemisphere_lights(light_dirs: np.ndarray) -> tuple[list[int], list[int]]:
+    """Map the synthetic protocol onto a stage's lights (rig-frame unit directions, (L, 3)).
+
+    Every upper-hemisphere light (z > 0) takes the label of its nearest grid direction: train or held out.
+    Test lights: for 10 held-out grid directions evenly spread in raster order, the nearest held-out-labelled
+    stage light (each used once). On a stage whose lights are the grid directions this gives exactly 112 / 10.
+    """
+    grid, held = hemisphere_grid()
+    upper = np.flatnonzero(light_dirs[:, 2] > 1e-9)
+    if upper.size == 0:
+        raise LightstageError("synthetic protocol: the stage has no lights on the upper hemisphere")
+    cos = light_dirs[upper] @ grid.T  # (U, 224)
+    nearest = np.argmax(cos, axis=1)
+    train = sorted(int(i) for i in upper[~held[nearest]])
+    candidates = upper[held[nearest]]
+    held_dirs = grid[held]
+    picks = np.linspace(0, len(held_dirs) - 1, SYNTHETIC_TEST_LIGHTS).round().astype(int)
+    test: list[int] = []
+    for p in picks:
+        if len(test) == len(candidates):
+            break
+        order = np.argsort(-(light_dirs[candidates] @ held_dirs[p]))
+        for k in order:
+            if int(candidates[k]) not in test:
+                test.append(int(candidates[k]))
+                break
+    return train, sorted(test)
+
+
+def _cameras(spec: Any, ids: tuple[str, ...], what: str, src: str) -> list[str]:
+    if isinstance(spec, list):
+        out = []
+        for c in spec:
+            if isinstance(c, int) and not isinstance(c, bool):
+                if not 0 <= c < len(ids):
+                    raise LightstageError(
+                        f"{src}: {what}: camera index {c} not on the stage (0..{len(ids) - 1})"
+                    )
+                out.append(ids[c])
+            elif str(c) in ids:
+                out.append(str(c))
+            else:
+                raise LightstageError(f"{src}: {what}: camera {c!r} not on the stage ({ids[0]}..{ids[-1]})")
+        return out
+    raise AssertionError(spec)
+
+
+def _lights(spec: list, num_lights: int, what: str, src: str) -> list[int]:
+    out = []
+    for x in spec:
+        if not isinstance(x, int) or isinstance(x, bool) or not 0 <= x < num_lights:
+            raise LightstageError(
+                f"{src}: {what}: light {x!r} not on the stage (0-based 0..{num_lights - 1})"
+            )
+        out.append(x)
+    return out
+
+
+def resolve(
+    protocol: Protocol, stage: Stage, excluded: set[FrameId] | None = None, source: str = "protocol"
+) -> Split:
+    """Apply a protocol to a stage: pick cameras, lights and groups, subtract rejected frames, validate."""
+    ids = tuple(stage.camera_ids)
+    C, L = len(ids), len(stage.lights)
+    src = f"{source} (stage {stage.name!r}: {C} cameras, {L} lights)"
+    rules = []
+    # cameras: the last 10% (>= 1) test, the rest train
+    tc = protocol.test_cameras
+    if tc is None:
+        tc = max(1, round(PAPER_TEST_CAMERA_FRACTION * C))
+        rules.append(f"test cameras = the last {tc} of {C} (the paper's 2 of 20, >= 1)")
+    if isinstance(tc, int):
+        if tc >= C or tc < 1:
+            raise LightstageError(
+                f"{src}: asks for {tc} test cameras; the stage has {C} (at least one must train)"
+            )
+        test_cams = list(ids[C - tc :])
+    else:
+        test_cams = _cameras(tc, ids, "cameras.test", src)
+    trc = protocol.train_cameras
+    if trc in ("rest", "all", None):
+        train_cams = [c for c in ids if c not in test_cams]
+    elif isinstance(trc, int):
+        if trc > C - len(test_cams):
+            raise LightstageError(
+                f"{src}: asks for {trc} training cameras; only {C - len(test_cams)} are not test cameras"
+            )
+        train_cams = [c for c in ids if c not in test_cams][:trc]
+    else:
+        train_cams = _cameras(trc, ids, "cameras.train", src)
+    # lights
+    if protocol.light_rule == "hemisphere" and not isinstance(protocol.test_lights, list | int):
+        train_l, test_l = hemisphere_lights(_unit(stage.light_positions_rig()))
+        rules.append(
+            "lights: each upper-hemisphere stage light takes the train/held-out label of its nearest direction on "
+            "the 7x32 grid (rows 2-8 of 16x32, checkerboard held out); test = nearest held-out lights to 10 "
+            "evenly spread held-out directions"
+        )
+        if isinstance(protocol.train_lights, list):
+            train_l = _lights(protocol.train_lights, L, "lights.train", src)
+        if not test_l:
+            raise LightstageError(
+                f"{src}: synthetic protocol: no held-out upper-hemisphere light for testing"
+            )
+    else:
+        n_train, n_test = paper_light_counts(L)
+        tl = protocol.test_lights
+        if tl is None:
+            tl = n_test
+            rules.append(
+                f"test lights = {n_test} of {L} (the paper's 10 of 331, scaled, >= 1), at the paper's test lights scaled to {L} lights"
+            )
+        if isinstance(tl, int):
+            if not 1 <= tl < L:
+                raise LightstageError(
+                    f"{src}: asks for {tl} test lights; the stage has {L} (at least one must train)"
+                )
+            test_l = place_test_lights(tl, L)
+        else:
+            test_l = _lights(tl, L, "lights.test", src)
+        trl = protocol.train_lights
+        if trl is None:
+            trl = n_train
+            rules.append(
+                f"train lights = {n_train} of {L} (the paper's 75 of 331, scaled, >= 1): trunc(linspace(1, {L}, {n_train})) 1-based, moved off test lights"
+            )
+        if trl in ("rest", "all"):
+            train_l = [i for i in range(L) if i not in set(test_l)]
+        elif isinstance(trl, int):
+            if trl < 1 or trl + len(test_l) > L:
+                raise LightstageError(
+                    f"{src}: asks for {trl} train + {len(test_l)} test lights; the stage has {L}"
+                )
+            train_l = place_train_lights(trl, L, set(test_l))
+        else:
+            train_l = _lights(trl, L, "lights.train", src)
+
+    # groups
+    def groups(spec: Any, what: str) -> list[str]:
+        if spec in ("all", "rest", None):
+            return list(stage.group_names)
+        if isinstance(spec, int):
+            raise LightstageError(f"{src}: groups.{what}: give a list of group names or 'all'")
+        out = []
+        for g in spec:
+            g = f"{g:03d}" if isinstance(g, int) else str(g)
+            if g not in stage.group_names:
+                raise LightstageError(
+                    f"{src}: groups.{what}: group {g!r} not on the stage ({', '.join(stage.group_names)})"
+                )
+            out.append(g)
+        return out
+
+    train_groups, test_groups = groups(protocol.train_groups, "train"), groups(protocol.test_groups, "test")
+    train_fs = {g: (tuple(train_cams), tuple(train_l)) for g in train_groups}
+    test_views = [(g, c) for g in test_groups for c in test_cams]
+    if protocol.test_views is not None and protocol.test_views < len(test_views):
+        keep = {int(k) for k in np.linspace(0, len(test_views) - 1, protocol.test_views).round()}
+        test_views = [v for k, v in enumerate(test_views) if k in keep]
+        rules.append(f"test views = {len(test_views)} of the held-out (group, camera) views, evenly spread")
+    test_fs: dict[str, tuple[tuple[str, ...], tuple[int, ...]]] = {}
+    for g in test_groups:
+        cams = tuple(c for gg, c in test_views if gg == g)
+        if cams:
+            test_fs[g] = (cams, tuple(test_l))
+    excluded = excluded or set()
+    train = FrameSet(train_fs, frozenset(f for f in excluded if _member(train_fs, f)))
+    test = FrameSet(test_fs, frozenset(f for f in excluded if _member(test_fs, f)))
+    params = {
+        "train_cameras": train_cams,
+        "test_cameras": test_cams,
+        "train_lights": train_l,
+        "test_lights": test_l,
+        "train_groups": train_groups,
+        "test_groups": test_groups,
+        "test_views": protocol.test_views,
+        "light_rule": protocol.light_rule,
+        "requested": protocol.parameters,
+    }
+    split = Split(protocol.name, params, "; ".join(rules), StageInfo.of(stage), train, test, src)
+    validate_split(split)
+    return split
+
+
+def _member(groups: dict[str, tuple[tuple[str, ...], tuple[int, ...]]], f: FrameId) -> bool:
+    cams, lights = groups.get(f.group, ((), ()))
+    return f.camera in cams and f.light in lights
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+# ---- the stage -------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SplitConfig:
+    """`lightstage split`: protocol name or YAML path; optional stage preset (split without a capture)."""
+
+    protocol: str = "paper"
+    stage_preset: str | None = None
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> SplitConfig:
+        unknown = set(d) - {"protocol", "stage_preset"}
+        if unknown:
+            raise LightstageError(f"split config: unknown key(s) {', '.join(sorted(unknown))}")
+        if "protocol" in d and not isinstance(d["protocol"], str):
+            raise LightstageError(f"split config: protocol: expected a string, got {d['protocol']!r}")
+        sp = d.get("stage_preset")
+        if sp is not None and not isinstance(sp, str):
+            raise LightstageError(f"split config: stage_preset: expected a string, got {sp!r}")
+        return cls(d.get("protocol", "paper"), sp)
+
+
+def load_protocol(spec: str) -> Protocol:
+    """A built-in protocol name or a YAML file path."""
+    if spec in PROTOCOLS:
+        return builtin_protocol(spec)
+    if Path(spec).is_file():
+        return protocol_from_yaml(spec)
+    raise LightstageError(f"protocol {spec!r}: neither a built-in ({', '.join(PROTOCOLS)}) nor a YAML file")
+
+
+def work_stage(work: WorkDir, preset: str | None = None) -> Stage:
+    """The stage of a work directory: a named preset, or the capture's stage.yaml via WORK/capture.txt."""
+    if preset:
+        from lightstage.capture.presets import stage_preset
+
+        return stage_preset(preset)
+    from lightstage.capture.layout import open_capture
+
+    if not work.capture_pointer.is_file():
+        raise LightstageError(
+            f"{work.capture_pointer}: missing (no capture linked to this work directory); "
+            "run the capture/preprocess stage first or pass --stage-preset"
+        )
+    return open_capture(work.capture_pointer.read_text().strip()).stage
+
+
+def rejected_frames(work: WorkDir) -> set[FrameId]:
+    """Frames preprocess rejected (WORK/reports/preprocess.json); empty when the report is absent."""
+    path = work.report("preprocess")
+    if not path.is_file():
+        return set()
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise LightstageError(f"{path}: unreadable preprocess report ({e})") from None
+    items: list[Any] = []
+    if isinstance(d, dict):
+        for key in ("rejected_frames", "rejected"):
+            v = d.get(key)
+            if isinstance(v, list):
+                items = v
+                break
+            if isinstance(v, dict):  # {frame_id: reason}
+                items = list(v)
+                break
+    out = set()
+    for it in items:
+        text = it.get("frame") if isinstance(it, dict) else it
+        out.add(parse_frame_id(text, f"{path}: rejected frames"))
+    return out
+
+
+def run_split(
+    work: WorkDir, config: SplitConfig, client: Any = None, progress: bool = True
+) -> dict[str, Any]:
+    """Resolve the protocol against the work directory's stage, write WORK/split.json and reports/split.json."""
+    t0 = time.perf_counter()
+    stage = work_stage(work, config.stage_preset)
+    protocol = load_protocol(config.protocol)
+    excluded = set() if config.stage_preset else rejected_frames(work)
+    split = resolve(protocol, stage, excluded, source=config.protocol)
+    split.save(work.split)
+    counts = split.counts()
+    summary = {
+        "stage": "split",
+        "protocol": split.protocol,
+        "stage_name": stage.name,
+        "stage_preset": config.stage_preset,
+        "counts": counts,
+        "rejected_in_report": len(excluded),
+        "output": str(work.split),
+        "seconds": round(time.perf_counter() - t0, 3),
+        "warnings": [],
+        "errors": [],
+    }
+    write_json_atomic(work.report("split"), summary)
+    return summary
