@@ -1,0 +1,62 @@
+"""The weighted L2 equals its formula, stops the gradient through its denominator, is one-sided on saturated
+targets; the mask loss penalises background densities only."""
+
+from __future__ import annotations
+
+import torch
+
+from lightstage.training.config import LossConfig
+from lightstage.training.losses import mask_loss, total_loss, weighted_l2
+
+
+def test_weighted_l2_formula_and_stop_gradient():
+    pred = torch.tensor([[0.5, 0.1, 2.0], [0.01, 0.3, 0.0]], requires_grad=True)
+    target = torch.tensor([[0.4, 0.2, 1.0], [0.0, 0.3, 0.5]])
+    eps = 1e-3
+    loss = weighted_l2(pred, target, eps)
+    p = pred.detach()
+    expected = (((p - target) / (p + eps)) ** 2).mean()
+    torch.testing.assert_close(loss, expected)
+    loss.backward()
+    # with sg on the denominator: d/dp = 2 (p - y) / (p + eps)^2 / n  (no term from the denominator)
+    grad = 2 * (p - target) / (p + eps) ** 2 / p.numel()
+    torch.testing.assert_close(pred.grad, grad)
+    # without the stop-gradient the gradient would differ
+    q = p.clone().requires_grad_(True)
+    (((q - target) / (q + eps)) ** 2).mean().backward()
+    assert not torch.allclose(q.grad, grad)
+
+
+def test_saturated_targets_are_one_sided():
+    target = torch.tensor([[4.4, 4.4, 4.4], [4.4, 4.4, 4.4]])
+    pred = torch.tensor([[5.0, 4.4, 3.0], [5.0, 4.4, 3.0]], requires_grad=True)
+    sat = torch.tensor([True, False])
+    loss = weighted_l2(pred, target, 1e-3, sat)
+    r = (pred.detach() - target) / (pred.detach() + 1e-3)
+    r[0, :2] = 0.0  # saturated row: at/above the cutoff costs nothing, below still does
+    torch.testing.assert_close(loss, (r**2).mean())
+    loss.backward()
+    assert pred.grad[0, 0] == 0 and pred.grad[0, 2] != 0 and pred.grad[1, 0] != 0
+
+
+def test_mask_loss_and_total():
+    sigma = torch.tensor([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]], requires_grad=True)
+    bg = torch.tensor([False, True, True])
+    torch.testing.assert_close(mask_loss(sigma, bg), torch.tensor((9 + 16 + 25 + 36) / 4.0))
+    assert float(mask_loss(sigma, torch.zeros(3, dtype=torch.bool)).detach()) == 0.0
+    cfg = LossConfig(rgb_fine=1.0, rgb_coarse=0.5, epsilon=1e-3, mask=0.1)
+    rgb = torch.full((3, 3), 0.2)
+    outputs = {"rgb": rgb, "rgb_coarse": rgb * 2, "sigma": sigma, "sigma_coarse": sigma * 0}
+    batch = {
+        "rgb": torch.full((3, 3), 0.1),
+        "zone": torch.tensor([2, 0, 0]),
+        "saturated": torch.zeros(3, dtype=torch.bool),
+    }
+    total, parts = total_loss(outputs, batch, cfg)
+    expect = (
+        weighted_l2(rgb, batch["rgb"], 1e-3)
+        + 0.5 * weighted_l2(rgb * 2, batch["rgb"], 1e-3)
+        + 0.1 * (86 / 4) / 2
+    )
+    torch.testing.assert_close(total, expect)
+    assert set(parts) == {"rgb_fine", "rgb_coarse", "mask"}

@@ -1,0 +1,72 @@
+"""Model heads and interfaces: exp head finite and non-negative at extreme inputs, config parsing, both fields."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from lightstage.errors import LightstageError
+from lightstage.training.config import TrainConfig, load_config
+from lightstage.training.hashgrid import HashGridEncoding
+from lightstage.training.heads import density_activation, exp_head
+from lightstage.training.model import RelightModel
+from lightstage.training.synthetic import SyntheticSphere
+
+
+def test_exp_head_nonnegative_and_finite_at_extremes():
+    raw = torch.tensor([-1e30, -1e4, -50.0, 0.0, 50.0, 88.0, 1e4, 1e30, float("inf")])
+    h = exp_head(raw, 15.0)
+    assert torch.all(torch.isfinite(h)) and torch.all(h >= 0)
+    assert float(h.max()) == pytest.approx(torch.exp(torch.tensor(15.0)).item())
+    for half in (torch.float16, torch.bfloat16):
+        assert torch.all(torch.isfinite(exp_head(raw.to(half), 15.0)))
+    s = density_activation(torch.tensor([-1e30, 0.0, 1e30]), "softplus", -1.0)
+    assert torch.all(s >= 0) and s[0] == 0
+
+
+def test_initial_predictions_small_and_missing_rays_black():
+    cfg = load_config("tiny")
+    model = RelightModel(cfg.model, centre=[0.0, 0.0, 0.0], scale=1.0)
+    o = torch.tensor([[0.0, 0.0, -5.0], [5.0, 5.0, -5.0]])
+    d = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])  # second ray misses the unit cube
+    out = model(o, d, torch.tensor([[0.0, 0.0, 1.0]] * 2))
+    assert torch.all(out["rgb"][0] < 0.2) and torch.all(out["rgb"][1] == 0) and out["acc"][1] == 0
+
+
+@pytest.mark.parametrize("name", ["tiny", "fast"])
+def test_forward_backward_both_fields(name):
+    cfg = load_config(name)
+    cfg.model.n_fine = 16
+    if cfg.model.field == "hashgrid":
+        cfg.model.hashgrid.log2_table_size = 12
+        cfg.model.hashgrid.max_resolution = 64
+        cfg.model.occupancy.resolution = 8
+    src = SyntheticSphere(batch_size=64)
+    model = RelightModel(cfg.model, src.centre, src.scale)
+    b = src.batch(0)
+    out = model(b["origins"], b["directions"], b["light_directions"], randomized=True)
+    out["rgb"].sum().backward()
+    assert out["rgb"].shape == (64, 3) and torch.all(torch.isfinite(out["rgb"]))
+    if model.occupancy is not None:
+        model.update_occupancy(cfg.model.occupancy.warmup_steps, seed=0)
+        assert bool(model.occupancy.ready)
+
+
+def test_hash_encoding_interpolates_continuously():
+    enc = HashGridEncoding(levels=4, features=2, log2_table_size=10, base_resolution=4, max_resolution=32)
+    x = torch.rand(100, 3) * 2 - 1
+    y1, y2 = enc(x), enc(x + 1e-5)
+    assert y1.shape == (100, 8) and float((y1 - y2).abs().max()) < 1e-5
+
+
+def test_config_rejects_unknown_keys_and_bad_types():
+    with pytest.raises(LightstageError, match="model.mlp.widht"):
+        TrainConfig.from_dict({"model": {"mlp": {"widht": 3}}})
+    with pytest.raises(LightstageError, match="optim.lr"):
+        TrainConfig.from_dict({"optim": {"lr": "fast"}})
+    with pytest.raises(LightstageError, match="model.field"):
+        TrainConfig.from_dict({"model": {"field": "voxels"}})
+    paper = load_config("paper")
+    assert (paper.model.mlp.depth, paper.model.mlp.width, paper.model.mlp.skip) == (8, 256, 4)
+    assert (paper.model.n_coarse, paper.model.n_fine, paper.optim.batch_rays) == (64, 128, 4096)
+    assert TrainConfig.from_dict(paper.to_dict()) == paper

@@ -1,0 +1,245 @@
+"""Typed training configuration (model, losses, optimiser, evaluation) loaded from YAML.
+
+`TrainConfig.from_dict` rejects unknown keys and wrong types with a LightstageError naming the key, so a typo
+in a config file never silently falls back to a default. Built-in configs: `paper`, `fast`, `tiny`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import asdict, dataclass
+from dataclasses import field as dc_field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from lightstage.errors import LightstageError
+
+BUILTIN_CONFIGS = ("paper", "fast", "tiny")
+
+
+@dataclass
+class MLPConfig:
+    """The paper's NeRF-style MLP: `depth` x `width` trunk with the encoded position re-injected at `skip`."""
+
+    depth: int = 8
+    width: int = 256
+    skip: int = 4
+    head_width: int = 128
+    pos_freqs: int = 10
+    dir_freqs: int = 4
+    light_freqs: int = 4
+
+
+@dataclass
+class HashGridConfig:
+    """Multiresolution hash encoding (Mueller et al. 2022) in pure PyTorch with small MLP heads."""
+
+    levels: int = 16
+    features_per_level: int = 2
+    log2_table_size: int = 19
+    base_resolution: int = 16
+    max_resolution: int = 1024
+    hidden: int = 64
+    geo_features: int = 15
+    dir_freqs: int = 4
+    light_freqs: int = 4
+
+
+@dataclass
+class OccupancyConfig:
+    """Occupancy grid over the unit cube; samples in empty cells are not evaluated."""
+
+    enabled: bool = False
+    resolution: int = 64
+    update_every: int = 16
+    warmup_steps: int = 256
+    decay: float = 0.95
+    min_alpha: float = 0.01  # a cell is occupied when a sample there would have alpha >= min_alpha
+
+
+@dataclass
+class ModelConfig:
+    """Which field, how it is activated and how rays are sampled inside the normalised unit cube."""
+
+    field: str = "mlp"  # mlp | hashgrid
+    mlp: MLPConfig = dc_field(default_factory=MLPConfig)
+    hashgrid: HashGridConfig = dc_field(default_factory=HashGridConfig)
+    occupancy: OccupancyConfig = dc_field(default_factory=OccupancyConfig)
+    n_coarse: int = 64  # 0: one field with n_fine uniform samples (no hierarchy)
+    n_fine: int = 128
+    density_activation: str = "softplus"  # softplus | relu
+    density_bias: float = -1.0  # added before the activation (multinerf's default)
+    h_bias_init: float = -3.0  # exp(-3) ~ 0.05: early predictions start small, like dark pixels
+    h_max_exponent: float = 15.0  # exp(15) ~ 3.3e6: bounds h without overflow (float32 overflows at ~88)
+    resample_padding: float = 0.01  # uniform pdf mass added before hierarchical resampling
+
+
+@dataclass
+class LossConfig:
+    """RawNeRF weighted L2 on coarse and fine pixels plus the L2 mask loss on background-ray densities."""
+
+    rgb_fine: float = 1.0
+    rgb_coarse: float = 1.0
+    epsilon: float = 1e-3  # assumes linear HDR with object pixels ~0.05-1 (the preprocess scale)
+    mask: float = 1e-4
+    saturated_one_sided: bool = True
+
+
+@dataclass
+class OptimConfig:
+    """Adam with linear warm-up then exponential or cosine decay; gradient clipping; GPU autocast."""
+
+    steps: int = 200_000
+    batch_rays: int = 4096  # per optimiser step, split evenly across DDP ranks
+    lr: float = 5e-4
+    lr_final: float = 5e-5
+    warmup_steps: int = 500
+    schedule: str = "exponential"  # exponential | cosine
+    beta1: float = 0.9
+    beta2: float = 0.999
+    adam_eps: float = 1e-8
+    weight_decay: float = 0.0
+    grad_clip: float = 1.0  # max global grad norm; 0 disables
+    precision: str = "bf16"  # bf16 | fp16 | fp32 (autocast is used on CUDA only; CPU always fp32)
+
+
+@dataclass
+class EvalConfig:
+    """Periodic and final evaluation."""
+
+    chunk: int = 8192  # rays per rendering chunk
+    every: int = 5000  # steps between periodic evaluations (0: never)
+    images: int = 2  # test images rendered by a periodic evaluation
+    exposure_percentile: float = 99.0  # exposure maps this percentile of training foreground luminance to 1
+    stats_batches: int = 16  # training batches used for the exposure and the constant-colour baseline
+    lpips_weights: str = ""  # local path of torchvision VGG16 weights (.pth); empty -> LPIPS unavailable
+    lpips_linear_weights: str = (
+        ""  # local path of the LPIPS linear-layer weights (vgg.pth of the lpips package)
+    )
+    max_images: int = 0  # 0: every test image
+
+
+@dataclass
+class TrainConfig:
+    """Everything `lightstage train` needs besides the work directory."""
+
+    name: str = "paper"
+    seed: int = 0
+    model: ModelConfig = dc_field(default_factory=ModelConfig)
+    loss: LossConfig = dc_field(default_factory=LossConfig)
+    optim: OptimConfig = dc_field(default_factory=OptimConfig)
+    eval: EvalConfig = dc_field(default_factory=EvalConfig)
+    log_every: int = 50
+    checkpoint_every: int = 1000
+    loader_workers: int = 0
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any] | None) -> TrainConfig:
+        """Build from a nested dict; unknown keys or wrong types raise LightstageError naming the key."""
+        cfg = _from_dict(cls, d or {}, "")
+        _validate(cfg)
+        return cfg
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def _from_dict(cls: type, d: Any, prefix: str) -> Any:
+    if not isinstance(d, dict):
+        raise LightstageError(f"config: {prefix or 'top level'} must be a mapping, got {type(d).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(d) - names)
+    if unknown:
+        raise LightstageError(
+            f"config: unknown key {prefix}{unknown[0]} (allowed: {', '.join(sorted(names))})"
+        )
+    kwargs = {}
+    for key, value in d.items():
+        kwargs[key] = _coerce(hints[key], value, f"{prefix}{key}")
+    return cls(**kwargs)
+
+
+def _coerce(tp: Any, value: Any, key: str) -> Any:
+    if dataclasses.is_dataclass(tp):
+        return _from_dict(tp, value, key + ".")
+    if isinstance(tp, types.UnionType) or typing.get_origin(tp) is typing.Union:
+        for option in typing.get_args(tp):
+            try:
+                return _coerce(option, value, key)
+            except LightstageError:
+                continue
+        raise LightstageError(f"config: {key} has the wrong type ({type(value).__name__})")
+    if tp is type(None):
+        if value is None:
+            return None
+    elif tp is bool:
+        if isinstance(value, bool):
+            return value
+    elif tp is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+    elif tp is float:
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            return float(value)
+    elif tp is str:
+        if isinstance(value, str):
+            return value
+    raise LightstageError(f"config: {key} must be {getattr(tp, '__name__', tp)}, got {value!r}")
+
+
+def _validate(cfg: TrainConfig) -> None:
+    m = cfg.model
+    checks = [
+        (m.field in ("mlp", "hashgrid"), "model.field must be mlp or hashgrid"),
+        (m.density_activation in ("softplus", "relu"), "model.density_activation must be softplus or relu"),
+        (m.n_fine >= 1 and m.n_coarse >= 0, "model.n_fine must be >= 1 and model.n_coarse >= 0"),
+        (0 < m.mlp.skip < m.mlp.depth or m.mlp.skip == 0, "model.mlp.skip must be 0 or inside the trunk"),
+        (cfg.optim.schedule in ("exponential", "cosine"), "optim.schedule must be exponential or cosine"),
+        (cfg.optim.precision in ("bf16", "fp16", "fp32"), "optim.precision must be bf16, fp16 or fp32"),
+        (cfg.optim.steps >= 1 and cfg.optim.batch_rays >= 1, "optim.steps and optim.batch_rays must be >= 1"),
+        (cfg.loss.epsilon > 0, "loss.epsilon must be > 0"),
+        (cfg.checkpoint_every >= 1 and cfg.log_every >= 1, "checkpoint_every and log_every must be >= 1"),
+    ]
+    for ok, message in checks:
+        if not ok:
+            raise LightstageError(f"config: {message}")
+
+
+def load_config(name_or_path: str | Path, overrides: dict[str, Any] | None = None) -> TrainConfig:
+    """A built-in config by name (`paper`, `fast`, `tiny`) or a YAML file, with optional nested overrides."""
+    text_name = str(name_or_path)
+    if text_name in BUILTIN_CONFIGS:
+        text = resources.files("lightstage.training").joinpath("configs", f"{text_name}.yaml").read_text()
+        source = f"built-in config {text_name}"
+    else:
+        path = Path(name_or_path)
+        if not path.is_file():
+            raise LightstageError(
+                f"{path}: no such config file (built-in configs: {', '.join(BUILTIN_CONFIGS)})"
+            )
+        text = path.read_text()
+        source = str(path)
+    try:
+        data = yaml.safe_load(text) or {}
+    except yaml.YAMLError as e:
+        raise LightstageError(f"{source}: not valid YAML ({e})") from e
+    if overrides:
+        data = merge(data, overrides)
+    try:
+        return TrainConfig.from_dict(data)
+    except LightstageError as e:
+        raise LightstageError(f"{source}: {e}") from e
+
+
+def merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
+    """Recursive dict merge (values in `extra` win)."""
+    out = dict(base)
+    for k, v in extra.items():
+        out[k] = merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out

@@ -1,0 +1,53 @@
+"""Training losses: the RawNeRF weighted L2 on HDR pixels (one-sided on saturated targets) and the L2 mask loss
+on the densities of samples along background rays.
+
+The weighted L2 ((y_hat - y) / (sg(y_hat) + eps))^2 approximates an L2 on log(y + eps), so eps sets the darkest
+level that still counts: eps = 1e-3 assumes linear HDR where object pixels are ~0.05-1 (the preprocess scale,
+saturation at 4.4); background targets are 0, for which the loss is ~1 as soon as y_hat >> eps.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from lightstage.training.config import LossConfig
+from lightstage.workdir import ZONE_BACKGROUND
+
+
+def weighted_l2(
+    pred: torch.Tensor, target: torch.Tensor, eps: float, saturated: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Mean of ((pred - target) / (sg(pred) + eps))^2; where `saturated` (R,) is set, pred >= target costs nothing."""
+    r = (pred - target) / (pred.detach() + eps)
+    if saturated is not None:
+        r = torch.where(saturated[:, None] & (pred >= target), torch.zeros_like(r), r)
+    return (r**2).mean()
+
+
+def mask_loss(sigma: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
+    """Mean squared density over all samples (R, S) of background rays (R,) (0 when the batch has none)."""
+    if not bool(background.any()):
+        return sigma.sum() * 0.0
+    return (sigma[background] ** 2).mean()
+
+
+def total_loss(
+    outputs: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], cfg: LossConfig
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Weighted sum of the fine/coarse pixel losses and the mask loss; also returns each term as a float."""
+    target = batch["rgb"]
+    saturated = batch.get("saturated") if cfg.saturated_one_sided else None
+    if saturated is not None:
+        saturated = saturated.bool()
+    background = batch["zone"] == ZONE_BACKGROUND
+    parts: dict[str, torch.Tensor] = {"rgb_fine": weighted_l2(outputs["rgb"], target, cfg.epsilon, saturated)}
+    total = cfg.rgb_fine * parts["rgb_fine"]
+    sigma_terms = [outputs["sigma"]]
+    if "rgb_coarse" in outputs:
+        parts["rgb_coarse"] = weighted_l2(outputs["rgb_coarse"], target, cfg.epsilon, saturated)
+        total = total + cfg.rgb_coarse * parts["rgb_coarse"]
+        sigma_terms.append(outputs["sigma_coarse"])
+    if cfg.mask > 0:
+        parts["mask"] = sum(mask_loss(s, background) for s in sigma_terms) / len(sigma_terms)
+        total = total + cfg.mask * parts["mask"]
+    return total, {k: float(v.detach()) for k, v in parts.items()}

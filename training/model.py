@@ -1,0 +1,111 @@
+"""The relighting model: coarse + fine fields volume-rendered inside the normalised scene bounds (paper Sec. 3),
+or one hash-grid field with an occupancy grid (`fast`), chosen by `ModelConfig`.
+
+World rays are mapped into the unit cube with x_norm = (x - centre) / scale (directions unchanged, lengths in
+normalised units); samples lie between the ray's entry and exit of [-1, 1]^3, and rays that miss render 0.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from lightstage.training.config import ModelConfig
+from lightstage.training.hashgrid import HashGridField
+from lightstage.training.mlp_field import MLPField
+from lightstage.training.occupancy import OccupancyGrid, density_threshold
+from lightstage.training.render import composite, volume_weights
+from lightstage.training.sampling import merge_edges, midpoints, ray_box, resample_edges, stratified_edges
+
+
+def make_field(cfg: ModelConfig) -> nn.Module:
+    """The field named by `cfg.field`."""
+    return MLPField(cfg) if cfg.field == "mlp" else HashGridField(cfg)
+
+
+class RelightModel(nn.Module):
+    """forward(origins, directions, light_directions) in world coordinates -> dict with the HDR pixel `rgb` (R, 3),
+    the fine densities `sigma` (R, S), and `rgb_coarse` / `sigma_coarse` when a coarse field exists."""
+
+    def __init__(self, cfg: ModelConfig, centre: torch.Tensor | list[float], scale: float):
+        super().__init__()
+        self.cfg = cfg
+        self.register_buffer("centre", torch.as_tensor(centre, dtype=torch.float32).reshape(3).clone())
+        self.register_buffer("scale", torch.tensor(float(scale), dtype=torch.float32))
+        self.coarse = make_field(cfg) if cfg.n_coarse > 0 else None
+        self.fine = make_field(cfg)
+        self.occupancy = None
+        if cfg.occupancy.enabled:
+            first_pass = cfg.n_coarse if cfg.n_coarse > 0 else cfg.n_fine
+            threshold = density_threshold(cfg.occupancy.min_alpha, first_pass)
+            self.occupancy = OccupancyGrid(cfg.occupancy.resolution, cfg.occupancy.decay, threshold)
+
+    def normalise(self, points: torch.Tensor) -> torch.Tensor:
+        """World points -> unit-cube coordinates."""
+        return (points - self.centre) / self.scale
+
+    def forward(
+        self,
+        origins: torch.Tensor,
+        directions: torch.Tensor,
+        light_directions: torch.Tensor,
+        randomized: bool = False,
+    ) -> dict[str, torch.Tensor]:
+        o = self.normalise(origins.float())
+        d = torch.nn.functional.normalize(directions.float(), dim=-1)
+        light = torch.nn.functional.normalize(light_directions.float(), dim=-1)
+        near, far = ray_box(o, d)
+        out: dict[str, torch.Tensor] = {}
+        if self.coarse is not None:
+            edges_c = stratified_edges(near, far, self.cfg.n_coarse, randomized)
+            rgb_c, sigma_c, w_c = self._march(self.coarse, o, d, light, edges_c)
+            out.update(rgb_coarse=rgb_c, sigma_coarse=sigma_c)
+            edges_f = resample_edges(edges_c, w_c, self.cfg.n_fine, randomized, self.cfg.resample_padding)
+            edges = merge_edges(edges_c, edges_f)
+        else:
+            edges = stratified_edges(near, far, self.cfg.n_fine, randomized)
+        rgb, sigma, w = self._march(self.fine, o, d, light, edges)
+        out.update(rgb=rgb, sigma=sigma, acc=w.sum(-1))
+        return out
+
+    def _march(
+        self, field: nn.Module, o: torch.Tensor, d: torch.Tensor, light: torch.Tensor, edges: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Evaluate `field` at interval midpoints (skipping empty/zero-length ones) and composite."""
+        t, delta = midpoints(edges)
+        x = o[:, None, :] + d[:, None, :] * t[..., None]  # (R, S, 3)
+        keep = delta > 0
+        if self.occupancy is not None:
+            keep = keep & self.occupancy.occupied(x)
+        if not bool(keep.any()):  # evaluate one sample so every parameter takes part (DDP needs it)
+            keep = keep.clone()
+            keep.view(-1)[0] = True
+        R, S = t.shape
+        if bool(keep.all()):
+            s, h = field(
+                x.reshape(-1, 3),
+                d[:, None].expand(R, S, 3).reshape(-1, 3),
+                light[:, None].expand(R, S, 3).reshape(-1, 3),
+            )
+            sigma, hh = s.reshape(R, S), h.reshape(R, S, 3)
+        else:
+            rows = keep.nonzero(as_tuple=True)[0]
+            s, h = field(x[keep], d[rows], light[rows])
+            sigma = torch.zeros(R, S, device=x.device, dtype=s.dtype).masked_scatter(keep, s)
+            hh = torch.zeros(R, S, 3, device=x.device, dtype=h.dtype).masked_scatter(keep[..., None], h)
+        w = volume_weights(sigma, delta)
+        return composite(w, hh), sigma, w
+
+    @torch.no_grad()
+    def update_occupancy(self, step: int, seed: int) -> None:
+        """Refresh the occupancy grid (no-op without one or before its warm-up / between update steps)."""
+        occ = self.cfg.occupancy
+        if self.occupancy is None or step < occ.warmup_steps or step % occ.update_every:
+            return
+        self.occupancy.update(self.fine.density, seed=seed * 1_000_003 + step)
+
+    def density(self, points_world: torch.Tensor) -> torch.Tensor:
+        """(N,) fine-field density at world points; 0 outside the normalised unit cube."""
+        x = self.normalise(points_world.float())
+        inside = (x.abs() <= 1.0).all(-1)
+        return torch.where(inside, self.fine.density(x.clamp(-1.0, 1.0)), torch.zeros_like(x[:, 0]))

@@ -1,0 +1,60 @@
+"""Occupancy grid over the normalised unit cube (instant-ngp style) to skip evaluating empty space.
+
+Each cell keeps a decaying maximum of the density seen at random points inside it; samples that fall in cells
+whose density would give alpha < min_alpha at the nominal step size are not evaluated (sigma = 0, h = 0).
+Updates draw their points from a generator seeded by (seed, step), so DDP ranks and resumed runs agree.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+from torch import nn
+
+
+class OccupancyGrid(nn.Module):
+    """A res^3 density grid over [-1, 1]^3; everything counts as occupied until the first update."""
+
+    def __init__(self, resolution: int, decay: float, density_threshold: float):
+        super().__init__()
+        self.resolution = resolution
+        self.decay = decay
+        self.density_threshold = density_threshold
+        self.register_buffer("grid", torch.zeros(resolution, resolution, resolution))
+        self.register_buffer("ready", torch.zeros((), dtype=torch.bool))
+
+    def cell_index(self, x: torch.Tensor) -> torch.Tensor:
+        """Integer (..., 3) cell indices of normalised points (clamped into the grid)."""
+        return ((x + 1.0) * 0.5 * self.resolution).long().clamp(0, self.resolution - 1)
+
+    def occupied(self, x: torch.Tensor) -> torch.Tensor:
+        """Boolean (...) mask: does the cell containing each normalised point (..., 3) hold matter?"""
+        if not bool(self.ready):
+            return torch.ones(x.shape[:-1], dtype=torch.bool, device=x.device)
+        i = self.cell_index(x)
+        return self.grid[i[..., 0], i[..., 1], i[..., 2]] > self.density_threshold
+
+    @torch.no_grad()
+    def update(
+        self, density_fn: Callable[[torch.Tensor], torch.Tensor], seed: int, chunk: int = 65536
+    ) -> None:
+        """grid <- max(decay * grid, density at one random point per cell)."""
+        r = self.resolution
+        device = self.grid.device
+        gen = torch.Generator(device="cpu").manual_seed(int(seed))
+        ijk = torch.stack(torch.meshgrid(*(torch.arange(r),) * 3, indexing="ij"), -1).reshape(-1, 3)
+        pts = ((ijk + torch.rand(ijk.shape, generator=gen)) / r * 2.0 - 1.0).to(device)
+        dens = torch.cat([density_fn(pts[i : i + chunk]).float() for i in range(0, len(pts), chunk)])
+        self.grid.copy_(torch.maximum(self.grid * self.decay, dens.reshape(r, r, r)))
+        self.ready.fill_(True)
+
+    def occupied_fraction(self) -> float:
+        return float((self.grid > self.density_threshold).float().mean()) if bool(self.ready) else 1.0
+
+
+def density_threshold(min_alpha: float, n_samples: int) -> float:
+    """Density whose alpha over the nominal step (cube diagonal / n_samples) equals min_alpha."""
+    step = 2.0 * math.sqrt(3.0) / n_samples
+    return -math.log(1.0 - min_alpha) / step
