@@ -1,9 +1,126 @@
-"""Subcommands of the pipeline package (run, demo, config); filled in by the pipelines issue."""
+"""Subcommands of the pipeline package: `run` (the whole job), `demo` (simulate + run + report) and
+`config show` (the effective pipeline config)."""
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+
+STAGES = ("validate", "preprocess", "calibrate", "split", "shard", "train", "eval")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the pipeline's subcommands."""
+    """Add `run`, `demo` and `config`."""
+    run = subparsers.add_parser(
+        "run",
+        help="run the whole pipeline (validate .. eval) as resumable batch work on dask",
+        description=(
+            "Run validate -> preprocess -> calibrate -> split -> shard on dask, then train -> eval. "
+            "Finished stages whose config and inputs are unchanged are skipped; a killed run resumes. "
+            "Give either a pipeline config (CONFIG.yaml with capture: and work:) or CAPTURE --work WORK."
+        ),
+    )
+    run.add_argument("target", type=Path, help="a pipeline config (.yaml) or a raw capture directory")
+    run.add_argument("--work", type=Path, help="work directory (overrides the config's work:)")
+    run.add_argument(
+        "--config", type=Path, help="pipeline config when TARGET is a capture (default: built-in)"
+    )
+    run.add_argument("--scheduler", help="address of an existing dask scheduler, e.g. tcp://HOST:8786")
+    run.add_argument(
+        "--workers",
+        type=int,
+        help="worker processes of the local cluster (default 2; 0 = no dask, run in this process)",
+    )
+    run.add_argument(
+        "--from", dest="from_stage", choices=STAGES, help="rerun this stage and everything after it"
+    )
+    run.add_argument("--only", choices=STAGES, help="run only this stage (even if up to date)")
+    run.add_argument(
+        "--clean", action="store_true", help="with --from/--only: remove the forced stages' outputs first"
+    )
+    run.add_argument("--no-progress", action="store_true", help="no progress bars")
+    run.set_defaults(func=_run)
+
+    demo = subparsers.add_parser(
+        "demo",
+        help="simulate a small capture, run the whole pipeline on it and write a report",
+        description="Simulate a capture, run every stage with the tiny training config, write WORK/report.md.",
+    )
+    demo.add_argument(
+        "--work", type=Path, default=Path("demo-work"), help="work directory (default demo-work)"
+    )
+    demo.add_argument("--config", type=Path, help="pipeline config (default: built-in demo)")
+    demo.add_argument("--preset", help="simulator preset (default: the demo config's choice)")
+    demo.add_argument("--seed", type=int, default=0, help="simulator seed")
+    demo.add_argument("--workers", type=int, help="worker processes of the local cluster")
+    demo.add_argument("--scheduler", help="address of an existing dask scheduler")
+    demo.add_argument("--no-progress", action="store_true", help="no progress bars")
+    demo.set_defaults(func=_demo)
+
+    cfg = subparsers.add_parser("config", help="show the effective pipeline config")
+    cfg_sub = cfg.add_subparsers(dest="config_command", metavar="ACTION", required=True)
+    show = cfg_sub.add_parser("show", help="print the effective config (defaults filled in) as YAML")
+    show.add_argument("config", nargs="?", help="pipeline config file or built-in name (default: default)")
+    show.set_defaults(func=_config_show)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from lightstage.errors import LightstageError
+    from lightstage.pipelines.config import load_pipeline_config
+    from lightstage.pipelines.runner import run_pipeline
+    from lightstage.workdir import WorkDir
+
+    target: Path = args.target
+    if target.is_file() or target.suffix in (".yaml", ".yml"):
+        if args.config:
+            raise LightstageError("give the config either as TARGET or with --config, not both")
+        config = load_pipeline_config(target)
+        capture = config.capture
+    else:
+        config = load_pipeline_config(args.config)
+        capture = str(target)
+    work = args.work or (Path(config.work) if config.work else None)
+    if work is None:
+        raise LightstageError("no work directory: pass --work WORK or set work: in the config")
+    if capture is None and not WorkDir.at(work).capture_pointer.is_file():
+        raise LightstageError(f"{target}: no capture: set capture: in the config or run CAPTURE --work WORK")
+    config = config.with_cluster(scheduler=args.scheduler, workers=args.workers)
+    results = run_pipeline(
+        WorkDir.at(work),
+        config,
+        capture=capture,
+        from_stage=args.from_stage,
+        only=args.only,
+        clean=args.clean,
+        progress=not args.no_progress,
+    )
+    ran = [r.stage for r in results if r.status == "ran"]
+    skipped = [r.stage for r in results if r.status == "skipped"]
+    print(
+        f"pipeline finished in {work}: ran {', '.join(ran) or 'nothing'}; up to date: {', '.join(skipped) or '-'}"
+    )
+    return 0
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from lightstage.pipelines.demo import run_demo
+
+    run_demo(
+        args.work,
+        config_path=args.config,
+        preset=args.preset,
+        seed=args.seed,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        progress=not args.no_progress,
+    )
+    return 0
+
+
+def _config_show(args: argparse.Namespace) -> int:
+    from lightstage.pipelines.config import dump_yaml, load_pipeline_config
+
+    config = load_pipeline_config(args.config)
+    print(f"# effective pipeline config from {config.source}")
+    print(dump_yaml(config.effective()), end="")
+    return 0
