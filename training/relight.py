@@ -1,0 +1,231 @@
+"""Environment-map relighting of a trained OLAT model (paper §3, "Using environment map conditioning"):
+each envmap light (a median-cut region, or every pixel) is one OLAT query at its direction (a light at
+infinity); the white-light OLAT predictions are multiplied per RGB channel by the light's energy
+(radiance x solid angle) times the irradiance-to-OLAT factor d^2 / I, and summed (docs/relighting.md).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from lightstage.errors import LightstageError
+from lightstage.training.envmap import EnvMap, Lights
+from lightstage.workdir import WorkDir
+
+
+@runtime_checkable
+class RelightableModel(Protocol):
+    """What relighting, rendering and meshing need of a trained model (lightstage.training.model)."""
+
+    centre: Any  # scene-bounds centre (3,) or scalar: x_norm = (x - centre) / scale in [-1, 1]^3
+    scale: Any  # scene-bounds half-extent, scalar or (3,)
+
+    def render_rays(self, origins, directions, light_directions, chunk: int = ...) -> Any:
+        """(N, 3) world rays and per-ray unit light directions -> (N, 3) linear HDR."""
+        ...
+
+    def density(self, points_world) -> Any:
+        """(N, 3) world points -> (N,) volume density."""
+        ...
+
+    def image_from_camera(self, camera, light_direction) -> np.ndarray:
+        """(H, W, 3) linear HDR image of a PinholeCamera under a white OLAT light from `light_direction`."""
+        ...
+
+
+def relight_image(
+    model: RelightableModel,
+    camera,
+    lights: Lights,
+    olat_factor: float,
+    progress: bool = False,
+) -> np.ndarray:
+    """(H, W, 3) float32 HDR: sum over lights of OLAT(omega_k) * rgb_k * olat_factor (zero lights skipped)."""
+    from tqdm import tqdm
+
+    active = lights.nonzero()
+    acc = np.zeros((camera.height, camera.width, 3), np.float64)
+    for d, rgb in tqdm(
+        list(zip(active.directions, active.rgb, strict=True)),
+        desc="relight",
+        disable=not progress,
+        leave=False,
+    ):
+        img = np.asarray(model.image_from_camera(camera, np.asarray(d, np.float32)), np.float64)
+        acc += img * (np.asarray(rgb, np.float64) * olat_factor)
+    return acc.astype(np.float32)
+
+
+def relative_l2(pred: np.ndarray, ref: np.ndarray) -> float:
+    """||pred - ref|| / ||ref|| over all pixels and channels (linear HDR)."""
+    den = float(np.linalg.norm(np.asarray(ref, np.float64)))
+    num = float(np.linalg.norm(np.asarray(pred, np.float64) - np.asarray(ref, np.float64)))
+    return num / den if den > 0 else (0.0 if num == 0 else float("inf"))
+
+
+def psnr_tonemapped(pred: np.ndarray, ref: np.ndarray, exposure: float) -> float:
+    """PSNR (dB) between the two images after the project tonemap at one exposure."""
+    from lightstage.tonemap import tonemap
+
+    mse = float(np.mean((tonemap(pred, exposure).astype(np.float64) - tonemap(ref, exposure)) ** 2))
+    return float("inf") if mse == 0 else 10.0 * np.log10(1.0 / mse)
+
+
+def parse_lights_option(text: str | int | list) -> list[int | str]:
+    """'64' / '16,64,all' / [16, 'all'] -> [16, 64, 'all']; counts must be powers of two."""
+    items = text if isinstance(text, list) else str(text).split(",")
+    out: list[int | str] = []
+    for item in items:
+        s = str(item).strip().lower()
+        if s == "all":
+            out.append("all")
+            continue
+        try:
+            k = int(s)
+        except ValueError:
+            raise LightstageError(f"--lights: expected a power of two or 'all', got {item!r}") from None
+        if k < 1 or k & (k - 1):
+            raise LightstageError(f"--lights: {k} is not a power of two (median cut halves regions)")
+        out.append(k)
+    if not out:
+        raise LightstageError("--lights: give at least one count or 'all'")
+    return out
+
+
+@dataclass
+class RelightConfig:
+    """Options of `lightstage relight`."""
+
+    envmap: str = ""
+    lights: str = "64"  # comma list of powers of two and/or 'all'
+    cameras: list[str] = field(default_factory=list)  # camera specs; empty: the first calibrated view
+    resolution: str = "32x16"
+    rotate_deg: float = 0.0
+    downscale: int = 1
+    exposure: float | None = None
+    checkpoint: str | None = None
+    device: str = "cpu"
+    light_distance: float | None = None
+    light_intensity: float = 1.0
+    out: str = "relight"
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> RelightConfig:
+        from lightstage.training.render_views import config_from_dict
+
+        return config_from_dict(cls, d)
+
+
+def run_relight(
+    work: WorkDir,
+    config: RelightConfig,
+    client: Any = None,
+    progress: bool = True,
+    model: RelightableModel | None = None,
+) -> dict[str, Any]:
+    """Relight a trained model with an envmap for each camera and light count; EXR + PNG per image, a picture
+    of the lights per count, and OUT/relight.json with timings and the K-light error vs 'all' when asked."""
+    from lightstage.atomic import write_json_atomic
+    from lightstage.capture.frames import write_exr, write_image
+    from lightstage.tonemap import auto_exposure, tonemap_u8
+    from lightstage.training.envmap import envmap_lights, load_envmap, parse_resolution, preview_with_lights
+    from lightstage.training.render_views import downscale_camera, load_scene_info, parse_camera
+
+    t0 = time.perf_counter()
+    if not config.envmap:
+        raise LightstageError("relight: --envmap is required")
+    counts = parse_lights_option(config.lights)
+    env = load_envmap(config.envmap, parse_resolution(config.resolution), config.rotate_deg)
+    scene = load_scene_info(work, config.light_distance, config.light_intensity)
+    if model is None:
+        from lightstage.training.model import load_trained
+
+        model = load_trained(work, config.checkpoint, config.device)
+    specs = list(config.cameras)
+    if not specs:
+        specs = [_default_camera(scene)]
+    cameras = [parse_camera(s, scene, model) for s in specs]
+    out = Path(config.out)
+    out.mkdir(parents=True, exist_ok=True)
+
+    light_sets: dict[str, Lights] = {}
+    for k in counts:
+        light_sets[str(k)] = envmap_lights(env, k)
+    env_exposure = _env_exposure(env)
+    for key, lights in light_sets.items():
+        write_image(
+            out / f"envmap_lights_{_tag(key)}.png", preview_with_lights(env, lights, exposure=env_exposure)
+        )
+
+    summary: dict[str, Any] = {
+        "envmap": str(config.envmap),
+        "envmap_resolution": [env.width, env.height],
+        "rotate_deg": env.rotate_deg,
+        "envmap_total_rgb_irradiance": env.energies().sum(axis=(0, 1)).tolist(),
+        "light_distance_m": scene.light_distance,
+        "light_intensity": scene.light_intensity,
+        "olat_factor": scene.olat_factor,
+        "tonemap": "sRGB(clip(exposure * hdr, 0, 1)) (lightstage.tonemap)",
+        "views": {},
+    }
+    exposure = config.exposure
+    for named in cameras:
+        camera = downscale_camera(named.camera, config.downscale)
+        images: dict[str, np.ndarray] = {}
+        view: dict[str, Any] = {
+            "camera": named.name,
+            "resolution": [camera.width, camera.height],
+            "results": {},
+        }
+        for key, lights in light_sets.items():
+            t1 = time.perf_counter()
+            img = relight_image(model, camera, lights, scene.olat_factor, progress)
+            images[key] = img
+            if exposure is None:
+                exposure = auto_exposure(img, 99.0)
+            path = out / f"{named.name}_{_tag(key)}.exr"
+            write_exr(
+                path, img, attributes={"lightstage_envmap": str(config.envmap), "lightstage_lights": key}
+            )
+            write_image(path.with_suffix(".png"), tonemap_u8(img, exposure))
+            view["results"][key] = {
+                "lights": len(lights),
+                "nonzero_lights": len(lights.nonzero()),
+                "seconds": round(time.perf_counter() - t1, 3),
+                "exr": str(path),
+            }
+        if "all" in images:
+            ref = images["all"]
+            for key, img in images.items():
+                if key != "all":
+                    view["results"][key]["vs_all"] = {
+                        "relative_l2": relative_l2(img, ref),
+                        "psnr_tonemapped_db": psnr_tonemapped(img, ref, exposure),
+                    }
+        summary["views"][named.name] = view
+    summary["exposure"] = exposure
+    summary["seconds"] = round(time.perf_counter() - t0, 3)
+    write_json_atomic(out / "relight.json", summary)
+    return summary
+
+
+def _tag(key: str) -> str:
+    return "all" if key == "all" else f"k{int(key):03d}"
+
+
+def _env_exposure(env: EnvMap) -> float:
+    from lightstage.tonemap import auto_exposure
+
+    return auto_exposure(env.radiance, 95.0)
+
+
+def _default_camera(scene) -> str:
+    """The first calibrated view (sorted), or an orbit camera when WORK has no calibration."""
+    if scene.calibration is not None and scene.calibration.views:
+        return str(sorted(scene.calibration.views)[0])
+    return "orbit"
