@@ -1,0 +1,188 @@
+"""Per-view rendering of simulated raw frames: clean scene radiance plus the light-stage nuisances
+(dark background, bulbs in view, lens flare, sensor noise, clipping), written as half EXR.
+
+One `ViewJob` renders every light of one view; it is self-contained (picklable) so views run in a process
+pool, and its noise is seeded per frame, so the bytes do not depend on scheduling.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lightstage.cameras import PinholeCamera, pixel_rays
+from lightstage.capture.frames import write_exr, write_image
+from lightstage.capture.sim_scene import KIND_NONE, SimScene, ViewHits, cast_view, first_hit, shade
+
+
+@dataclass(frozen=True)
+class ViewJob:
+    """All inputs needed to render and write one view's frames."""
+
+    root: Path
+    group: str
+    camera: str
+    group_index: int  # indices in the full stage (seed streams do not depend on selections)
+    camera_index: int
+    camera_model: PinholeCamera  # true camera
+    light_positions: np.ndarray  # (L, 3) true world positions
+    light_ids: tuple[int, ...]  # 0-based indices written in file names
+    light_seed_ids: tuple[int, ...]  # indices for noise seeds
+    clean_lights: tuple[int, ...]  # light ids whose clean render is written
+    scene: SimScene
+    saturation: float
+    seed: int
+    path_template: str
+    compression: str = "zip"
+    attributes: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ViewRecord:
+    """What a view job reports back (small)."""
+
+    group: str
+    camera: str
+    foreground_pixels: int
+    bulbs: dict[int, int]  # light id -> number of saturated bulb pixels in view
+    flares: dict[int, float]  # light id -> flare peak added radiance
+    seconds: float
+
+
+def saturation_value(cutoff: float) -> np.float16:
+    """The smallest half-float >= cutoff (what a clipped pixel stores so it still reads as saturated)."""
+    h = np.float16(cutoff)
+    if float(h) < cutoff:
+        h = np.nextafter(h, np.float16(np.inf))
+    return h
+
+
+def background_image(cam: PinholeCamera, level: float) -> np.ndarray:
+    """(H, W, 3) dim, slightly vignetted, slightly bluish background (a dark light-stage interior)."""
+    y, x = np.mgrid[0 : cam.height, 0 : cam.width].astype(np.float32)
+    rr = ((x + 0.5 - cam.width / 2) ** 2 + (y + 0.5 - cam.height / 2) ** 2) / (cam.width / 2) ** 2
+    lum = level * (1.0 - 0.35 * np.clip(rr, 0, 1.5))
+    return lum[..., None] * np.array([0.9, 0.95, 1.1], np.float32)
+
+
+def bulb_pixels(scene: SimScene, cam: PinholeCamera, p: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(rows, cols) of pixels showing the unoccluded bulb of a light at world `p`, or None if it is not in view."""
+    pc = cam.R @ p + cam.t
+    if pc[2] <= 0:
+        return None
+    u = cam.K[0, 0] * pc[0] / pc[2] + cam.K[0, 2]
+    v = cam.K[1, 1] * pc[1] / pc[2] + cam.K[1, 2]
+    rad = max(1.5, cam.K[0, 0] * scene.nuisances.bulb_radius / pc[2])
+    c0, c1 = int(np.floor(u - rad)), int(np.ceil(u + rad))
+    r0, r1 = int(np.floor(v - rad)), int(np.ceil(v + rad))
+    c0, c1, r0, r1 = max(c0, 0), min(c1, cam.width), max(r0, 0), min(r1, cam.height)
+    if c0 >= c1 or r0 >= r1:
+        return None
+    rows, cols = np.mgrid[r0:r1, c0:c1]
+    inside = (cols + 0.5 - u) ** 2 + (rows + 0.5 - v) ** 2 <= rad**2
+    rows, cols = rows[inside], cols[inside]
+    if rows.size == 0:
+        return None
+    uv = np.stack([cols + 0.5, rows + 0.5], axis=-1).astype(np.float64)
+    o, d = pixel_rays(uv, cam.K, cam.R, cam.t)
+    t, kind, _ = first_hit(scene, (o[:, 0], o[:, 1], o[:, 2]), (d[:, 0], d[:, 1], d[:, 2]))
+    dist = np.linalg.norm(p - cam.center)
+    free = (kind == KIND_NONE) | (t > dist)
+    if not free.any():
+        return None
+    return rows[free], cols[free]
+
+
+def flare_image(
+    scene: SimScene, cam: PinholeCamera, p: np.ndarray, intensity: float
+) -> tuple[np.ndarray, float]:
+    """Additive lens flare (glow + horizontal streak + ghost) for a light behind the object near the view
+    direction; (None, 0) when there is none. Linear in the light's intensity."""
+    nz = scene.nuisances
+    to_light = p - cam.center
+    dist = float(np.linalg.norm(to_light))
+    cos_axis = float(cam.R[2] @ to_light) / dist
+    angle = np.degrees(np.arccos(np.clip(cos_axis, -1, 1)))
+    behind = dist > float(np.linalg.norm(cam.center))  # farther than the object (at the origin)
+    if angle >= nz.flare_max_angle_deg or not behind:
+        return None, 0.0
+    strength = nz.flare_gain * intensity / dist**2 * (1.0 - angle / nz.flare_max_angle_deg) ** 2
+    pc = cam.R @ p + cam.t
+    u = cam.K[0, 0] * pc[0] / pc[2] + cam.K[0, 2]
+    v = cam.K[1, 1] * pc[1] / pc[2] + cam.K[1, 2]
+    y, x = np.mgrid[0 : cam.height, 0 : cam.width].astype(np.float32)
+    x += 0.5
+    y += 0.5
+    s = nz.flare_sigma * cam.width
+    glow = np.exp(-((x - u) ** 2 + (y - v) ** 2) / (2 * s * s))
+    streak = np.exp(-(((y - v) / (0.006 * cam.width)) ** 2)) * np.exp(-np.abs(x - u) / (0.35 * cam.width))
+    gu, gv = cam.width - u, cam.height - v  # ghost mirrored through the image centre
+    ghost = np.exp(-((x - gu) ** 2 + (y - gv) ** 2) / (2 * (0.03 * cam.width) ** 2))
+    img = strength * (
+        glow[..., None] * np.array([1.0, 0.95, 0.85], np.float32)
+        + 0.6 * streak[..., None] * np.array([0.8, 0.9, 1.0], np.float32)
+        + 0.35 * ghost[..., None] * np.array([0.5, 0.8, 1.0], np.float32)
+    )
+    return img.astype(np.float32), float(strength)
+
+
+def add_noise_and_clip(
+    img: np.ndarray, scene: SimScene, cutoff: float, rng: np.random.Generator
+) -> np.ndarray:
+    """Poisson-like shot noise + read noise (Gaussian approximation), ADC quantisation, then clip to
+    [0, cutoff] as float16 (clipped pixels store the smallest half >= cutoff)."""
+    nz = scene.nuisances
+    sigma = np.sqrt(nz.shot_gain * np.maximum(img, 0) + nz.read_noise**2)
+    noisy = img + sigma * rng.standard_normal(img.shape, dtype=np.float32)
+    noisy = np.round(noisy * np.float32(1.0 / nz.adc_step)) * np.float32(nz.adc_step)
+    sat = saturation_value(cutoff)
+    return np.clip(noisy, 0.0, np.float32(sat)).astype(np.float16)
+
+
+def render_view(job: ViewJob) -> ViewRecord:
+    """Render and write every frame of one view, its GT mask and its clean frames."""
+    start = time.perf_counter()
+    cam = job.camera_model
+    scene = job.scene
+    hits: ViewHits = cast_view(scene, cam.K, cam.R, cam.t, cam.width, cam.height)
+    mask = hits.mask()
+    write_image(
+        job.root / "ground_truth" / "masks" / job.group / f"{job.camera}.png", mask.astype(np.uint8) * 255
+    )
+    bg = background_image(cam, scene.nuisances.background)
+    bg[mask] = 0.0
+    bulbs: dict[int, int] = {}
+    flares: dict[int, float] = {}
+    for lid, sid, p in zip(job.light_ids, job.light_seed_ids, job.light_positions, strict=True):
+        radiance = shade(scene, hits, p, scene.light_intensity)
+        clean = np.zeros((cam.height * cam.width, 3), np.float32)
+        clean[hits.index] = radiance
+        clean = clean.reshape(cam.height, cam.width, 3)
+        if lid in job.clean_lights:
+            path = job.root / "ground_truth" / "clean" / job.group / job.camera / f"{lid:03d}.exr"
+            write_exr(path, clean, half=False, compression=job.compression)
+        img = clean + bg
+        flare, strength = flare_image(scene, cam, p, scene.light_intensity)
+        if flare is not None:
+            img += flare
+            flares[lid] = strength
+        bulb = bulb_pixels(scene, cam, p)
+        if bulb is not None:
+            img[bulb[0], bulb[1]] = scene.nuisances.bulb_radiance
+            bulbs[lid] = int(bulb[0].size)
+        rng = np.random.default_rng([job.seed, 2, job.group_index, job.camera_index, sid])
+        raw = add_noise_and_clip(img, scene, job.saturation, rng)
+        path = job.root / job.path_template.format(group=job.group, camera=job.camera, light=lid)
+        write_exr(path, raw, half=True, compression=job.compression, attributes=job.attributes)
+    return ViewRecord(job.group, job.camera, int(mask.sum()), bulbs, flares, time.perf_counter() - start)
+
+
+def run_view_job(job: ViewJob) -> ViewRecord:
+    """Process-pool entry point: one library thread per process, then render the view."""
+    from lightstage.threads import set_library_threads
+
+    set_library_threads(1)
+    return render_view(job)

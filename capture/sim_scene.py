@@ -1,0 +1,503 @@
+"""The simulator's analytic scene: a translucent object (union of ellipsoids) with an opaque textured core,
+on a dark cylindrical stand; per-pixel ray casting and a cheap, linear, approximate SSS shading model.
+
+Shading (per point light of intensity I at distance r, irradiance E = I / r^2, all terms linear in I):
+  object  = E * vis * [ (kd * wrap(n.l) + kt * T_rgb * max(n_e.l, 0) / pi) * albedo_rgb + ks * blinn(n, l, v) ]
+  stand   = E * exp(-sigma_shadow * thickness) * [ albedo * max(n.l, 0) / pi + ks_stand * blinn ]
+with wrap(x) = max(x + w, 0) / (pi (1 + w)^2) (energy-normalised wrapped diffuse), T_rgb = exp(-sigma_tr * d)
+the diffusion attenuation over the distance d travelled inside the object along the light ray, n_e the normal
+where the light enters, and vis the stand's (opaque) occlusion. kd + kt + ks <= 1 keeps it energy-conserving.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+
+from lightstage.cameras import pixel_rays
+from lightstage.errors import LightstageError
+
+# Pixels per ray-casting band (keeps memory bounded at any resolution).
+BAND_PIXELS = 1 << 20
+KIND_NONE, KIND_OBJECT, KIND_STAND = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class Ellipsoid:
+    """Axis-aligned ellipsoid: centre and semi-axes in world metres."""
+
+    name: str
+    centre: tuple[float, float, float]
+    radii: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Cylinder:
+    """Vertical capped cylinder (the stand): axis through (x, y), radius, z range, world metres."""
+
+    name: str
+    centre_xy: tuple[float, float]
+    radius: float
+    z_min: float
+    z_max: float
+
+
+@dataclass(frozen=True)
+class Material:
+    """Parameters of the translucent object's approximate subsurface-scattering model (see module doc)."""
+
+    kd: float = 0.5  # wrapped-diffuse weight
+    kt: float = 0.42  # diffusion-transmission weight
+    ks: float = 0.05  # specular weight
+    shininess: float = 90.0
+    wrap: float = 0.4
+    sigma_tr: tuple[float, float, float] = (
+        14.0,
+        24.0,
+        42.0,
+    )  # 1/m, diffusion attenuation (red travels furthest)
+    sigma_shadow: float = 90.0  # 1/m, extinction of the direct light through the object (stand shadows)
+    sigma_view: float = 30.0  # 1/m, how quickly the inner core fades with depth below the surface
+    core_opacity: float = 0.85
+    base_rgb: tuple[float, float, float] = (0.92, 0.78, 0.58)  # candle/soap wax
+    core_rgb: tuple[float, float, float] = (0.35, 0.12, 0.06)
+    stand_rgb: tuple[float, float, float] = (0.07, 0.07, 0.08)
+    stand_ks: float = 0.03
+
+
+@dataclass(frozen=True)
+class Nuisances:
+    """Light-stage nuisances added to the raw frames only (never to the clean ground truth)."""
+
+    background: float = 4.0e-4  # dark background level
+    read_noise: float = 1.5e-4  # std of the additive read noise
+    shot_gain: float = 4.0e-5  # variance per unit signal (Poisson-like)
+    adc_step: float = 1.0 / 4096  # quantisation step of the (14-bit-like) converter
+    bulb_radius: float = 0.02  # m
+    bulb_radiance: float = 500.0  # far above the cutoff: bulbs in view clip
+    flare_max_angle_deg: float = 14.0  # flare when the light is within this angle of the optical axis ...
+    flare_gain: float = 0.25  # ... and behind the object; peak added radiance per unit camera irradiance
+    flare_sigma: float = 0.10  # glow width as a fraction of the image width
+
+
+@dataclass(frozen=True)
+class SimScene:
+    """Everything needed to render the scene (saved as ground_truth/scene.json)."""
+
+    body: tuple[Ellipsoid, ...]
+    core: Ellipsoid
+    stand: Cylinder
+    material: Material = field(default_factory=Material)
+    nuisances: Nuisances = field(default_factory=Nuisances)
+    light_intensity: float = 6.0
+    texture_seed: int = 0
+
+    def bounding_box(self) -> tuple[list[float], list[float]]:
+        """World bounds (min, max) of the translucent object (not the stand)."""
+        lo = np.min([np.subtract(e.centre, e.radii) for e in self.body], axis=0)
+        hi = np.max([np.add(e.centre, e.radii) for e in self.body], axis=0)
+        return lo.tolist(), hi.tolist()
+
+    def to_dict(self) -> dict[str, Any]:
+        lo, hi = self.bounding_box()
+        d = asdict(self)
+        d["object_bbox"] = {"min": lo, "max": hi}
+        d["description"] = (
+            "translucent wax object (union of the `body` ellipsoids) with an opaque textured inner `core`, "
+            "on an opaque dark cylindrical `stand`; world metres"
+        )
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> SimScene:
+        try:
+            return cls(
+                body=tuple(_ellipsoid(e) for e in d["body"]),
+                core=_ellipsoid(d["core"]),
+                stand=Cylinder(
+                    d["stand"]["name"],
+                    tuple(d["stand"]["centre_xy"]),
+                    float(d["stand"]["radius"]),
+                    float(d["stand"]["z_min"]),
+                    float(d["stand"]["z_max"]),
+                ),
+                material=Material(**{k: _tuplify(v) for k, v in d["material"].items()}),
+                nuisances=Nuisances(**d["nuisances"]),
+                light_intensity=float(d["light_intensity"]),
+                texture_seed=int(d["texture_seed"]),
+            )
+        except (KeyError, TypeError, ValueError) as e:
+            raise LightstageError(f"scene description: malformed ({type(e).__name__}: {e})") from None
+
+
+def _tuplify(v: Any) -> Any:
+    return tuple(v) if isinstance(v, list) else v
+
+
+def _ellipsoid(d: dict[str, Any]) -> Ellipsoid:
+    return Ellipsoid(d["name"], tuple(map(float, d["centre"])), tuple(map(float, d["radii"])))
+
+
+def default_scene(texture_seed: int = 0) -> SimScene:
+    """The candle/soap-like object: a wax body with a head and a thin fin, a dark core, a dark stand."""
+    return SimScene(
+        body=(
+            Ellipsoid("body", (0.0, 0.0, -0.015), (0.07, 0.05, 0.085)),
+            Ellipsoid("head", (0.012, 0.004, 0.072), (0.043, 0.04, 0.042)),
+            Ellipsoid("fin", (-0.004, 0.0, 0.0), (0.108, 0.012, 0.05)),
+        ),
+        core=Ellipsoid("core", (0.0, 0.0, -0.01), (0.036, 0.026, 0.047)),
+        stand=Cylinder("stand", (0.0, 0.0), 0.024, -0.45, -0.085),
+        texture_seed=texture_seed,
+    )
+
+
+# ---- ray / primitive intersection (component arrays, vectorised over rays) -------------------------
+def ellipsoid_interval(e: Ellipsoid, o: tuple, d: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t_enter, t_exit, hit) of rays o + t d (tuples of x, y, z arrays) with an ellipsoid."""
+    ox, oy, oz = ((o[i] - e.centre[i]) / e.radii[i] for i in range(3))
+    dx, dy, dz = (d[i] / e.radii[i] for i in range(3))
+    a = dx * dx + dy * dy + dz * dz
+    b = ox * dx + oy * dy + oz * dz
+    c = ox * ox + oy * oy + oz * oz - 1.0
+    disc = b * b - a * c
+    hit = disc > 0
+    s = np.sqrt(np.maximum(disc, 0))
+    return (-b - s) / a, (-b + s) / a, hit
+
+
+def ellipsoid_normal(e: Ellipsoid, p: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit outward normal at points p on the ellipsoid."""
+    n = [(p[i] - e.centre[i]) / (e.radii[i] ** 2) for i in range(3)]
+    inv = 1.0 / np.sqrt(n[0] ** 2 + n[1] ** 2 + n[2] ** 2)
+    return n[0] * inv, n[1] * inv, n[2] * inv
+
+
+def cylinder_interval(
+    c: Cylinder, o: tuple, d: tuple
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(t_enter, t_exit, hit, entered_through_cap) of rays with a vertical capped cylinder."""
+    ox, oy = o[0] - c.centre_xy[0], o[1] - c.centre_xy[1]
+    dx, dy, dz = d
+    a = dx * dx + dy * dy
+    b = ox * dx + oy * dy
+    cc = ox * ox + oy * oy - c.radius**2
+    disc = b * b - a * cc
+    safe_a = np.where(a > 1e-12, a, 1.0)
+    s = np.sqrt(np.maximum(disc, 0))
+    vertical = a <= 1e-12
+    t0 = np.where(vertical, np.where(cc < 0, -np.inf, np.inf), (-b - s) / safe_a)
+    t1 = np.where(vertical, np.where(cc < 0, np.inf, -np.inf), (-b + s) / safe_a)
+    t0 = np.where(~vertical & (disc <= 0), np.inf, t0)
+    t1 = np.where(~vertical & (disc <= 0), -np.inf, t1)
+    safe_dz = np.where(np.abs(dz) > 1e-12, dz, 1e-12)
+    za, zb = (c.z_min - o[2]) / safe_dz, (c.z_max - o[2]) / safe_dz
+    tz0, tz1 = np.minimum(za, zb), np.maximum(za, zb)
+    enter = np.maximum(t0, tz0)
+    exit_ = np.minimum(t1, tz1)
+    return enter, exit_, enter < exit_, tz0 > t0
+
+
+def union_length(intervals: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """Length of the union of ray intervals restricted to t > 0, and the farthest exit distance (0 if none)."""
+    starts = np.stack([np.where(h, np.maximum(a, 0), 0) for a, b, h in intervals])
+    ends = np.stack([np.where(h, np.maximum(b, 0), 0) for a, b, h in intervals])
+    ends = np.maximum(ends, starts)
+    order = np.argsort(starts, axis=0)
+    starts = np.take_along_axis(starts, order, axis=0)
+    ends = np.take_along_axis(ends, order, axis=0)
+    total = np.zeros(starts.shape[1], starts.dtype)
+    reach = np.zeros(starts.shape[1], starts.dtype)
+    for k in range(starts.shape[0]):
+        s = np.maximum(starts[k], reach)
+        total += np.maximum(ends[k] - s, 0)
+        reach = np.maximum(reach, ends[k])
+    return total, reach
+
+
+# ---- solid textures ---------------------------------------------------------------------------------
+class SolidTexture:
+    """Seeded, non-repeating 3D value-noise textures evaluated at world positions (fixed to the object)."""
+
+    GRID = 64
+
+    def __init__(self, seed: int):
+        rng = np.random.default_rng([seed, 7])
+        self.grids = [rng.random((self.GRID,) * 3, dtype=np.float32) for _ in range(4)]
+        # per (field, octave) a random rotation and offset, so octaves never align or repeat together
+        self.frames = [
+            [(_random_rotation(rng), rng.random(3) * self.GRID) for _ in range(8)] for _ in range(4)
+        ]
+
+    def fbm(
+        self, fieldno: int, p: np.ndarray, cell_sizes: tuple[float, ...], gain: float = 0.6
+    ) -> np.ndarray:
+        """Fractal value noise in [0, 1] at (N, 3) world points; cell sizes in metres, coarse first."""
+        total = np.zeros(len(p), np.float32)
+        weight, norm = 1.0, 0.0
+        for k, cell in enumerate(cell_sizes):
+            rot, off = self.frames[fieldno][k]
+            coords = (p @ rot.T) / cell + off
+            v = ndimage.map_coordinates(self.grids[fieldno], coords.T, order=1, mode="grid-wrap")
+            total += weight * v
+            norm += weight
+            weight *= gain
+        return total / norm
+
+
+def _random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q, r = np.linalg.qr(rng.standard_normal((3, 3)))
+    q = q * np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] = -q[:, 0]
+    return q
+
+
+def _smoothstep(a: float, b: float, x: np.ndarray) -> np.ndarray:
+    t = np.clip((x - a) / (b - a), 0.0, 1.0)
+    return t * t * (3 - 2 * t)
+
+
+def object_albedo(tex: SolidTexture, p: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """(N, 3) surface albedo of the wax: marbled veins, fine mottling and dark flecks (rich for SIFT)."""
+    marble = tex.fbm(0, p, (0.05, 0.025, 0.012, 0.006))
+    veins = 1.0 - _smoothstep(0.0, 0.06, np.abs(marble - 0.5))
+    fine = tex.fbm(1, p, (0.008, 0.004, 0.002))
+    flecks = _smoothstep(0.60, 0.68, tex.fbm(2, p, (0.009, 0.0045)))
+    lum = 0.55 + 0.45 * (fine - 0.5) * 2.2
+    lum = lum * (1.0 - 0.55 * veins) * (1.0 - 0.75 * flecks)
+    tint = tex.fbm(3, p, (0.06, 0.03))[:, None]
+    colour = base[None, :] * (0.8 + 0.4 * tint * np.array([1.0, 0.85, 0.6], np.float32))
+    return np.clip(colour * lum[:, None], 0.0, 1.0).astype(np.float32)
+
+
+def core_albedo(tex: SolidTexture, p: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """(N, 3) albedo of the opaque inner core: banded, mottled."""
+    bands = 0.5 + 0.5 * np.sin(p[:, 2] * 260.0 + 6.0 * tex.fbm(1, p, (0.02, 0.01)))
+    mott = tex.fbm(2, p * 1.7, (0.006, 0.003))
+    lum = 0.4 + 0.6 * bands * mott * 1.6
+    return np.clip(base[None, :] * lum[:, None], 0.0, 1.0).astype(np.float32)
+
+
+def stand_albedo(tex: SolidTexture, p: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """(N, 3) albedo of the dark stand: grainy."""
+    grain = tex.fbm(3, p, (0.01, 0.004, 0.002))
+    return np.clip(base[None, :] * (0.5 + grain[:, None]), 0.0, 1.0).astype(np.float32)
+
+
+# ---- per-view ray casting ----------------------------------------------------------------------------
+@dataclass
+class ViewHits:
+    """Everything light-independent about one view: which pixels see the object/stand and their surface data."""
+
+    width: int
+    height: int
+    index: np.ndarray  # (N,) flat pixel indices of hits (row-major)
+    kind: np.ndarray  # (N,) KIND_OBJECT / KIND_STAND
+    pos: np.ndarray  # (N, 3) float64 surface points
+    normal: np.ndarray  # (N, 3) float32
+    view: np.ndarray  # (N, 3) float32 unit direction from the point to the camera
+    albedo: np.ndarray  # (N, 3) float32 effective albedo (object: surface mixed with the visible core)
+
+    def mask(self) -> np.ndarray:
+        """(H, W) bool foreground (object + stand)."""
+        m = np.zeros(self.width * self.height, bool)
+        m[self.index] = True
+        return m.reshape(self.height, self.width)
+
+
+def first_hit(scene: SimScene, o: tuple, d: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t, kind, primitive) of the first surface along rays; t = inf and kind = KIND_NONE on a miss.
+    primitive: index into scene.body for object hits, -1 for the stand cap, -2 for the stand side."""
+    n = o[0].shape[0]
+    t = np.full(n, np.inf)
+    kind = np.zeros(n, np.int8)
+    prim = np.zeros(n, np.int16)
+    for k, e in enumerate(scene.body):
+        a, _b, h = ellipsoid_interval(e, o, d)
+        better = h & (a > 0) & (a < t)
+        t = np.where(better, a, t)
+        kind[better] = KIND_OBJECT
+        prim[better] = k
+    a, _b, h, cap = cylinder_interval(scene.stand, o, d)
+    better = h & (a > 0) & (a < t)
+    t = np.where(better, a, t)
+    kind[better] = KIND_STAND
+    prim[better] = np.where(cap[better], -1, -2)
+    return t, kind, prim
+
+
+def cast_view(
+    scene: SimScene, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int
+) -> ViewHits:
+    """Ray-cast every pixel centre of a view once (in row bands) and gather surface data of the hits."""
+    tex = SolidTexture(scene.texture_seed)
+    mat = scene.material
+    rows_per_band = max(1, BAND_PIXELS // width)
+    parts: dict[str, list[np.ndarray]] = {
+        k: [] for k in ("index", "kind", "pos", "normal", "view", "prim", "depth")
+    }
+    for r0 in range(0, height, rows_per_band):
+        r1 = min(height, r0 + rows_per_band)
+        jj, ii = np.meshgrid(np.arange(r0, r1), np.arange(width), indexing="ij")
+        uv = np.stack([ii.ravel() + 0.5, jj.ravel() + 0.5], axis=-1)
+        origins, dirs = pixel_rays(uv, K, R, t)
+        o = (origins[:, 0], origins[:, 1], origins[:, 2])
+        d = (dirs[:, 0], dirs[:, 1], dirs[:, 2])
+        th, kind, prim = first_hit(scene, o, d)
+        sel = np.nonzero(kind != KIND_NONE)[0]
+        if sel.size == 0:
+            continue
+        pos = origins[sel] + th[sel, None] * dirs[sel]
+        parts["index"].append((jj.ravel()[sel] * width + ii.ravel()[sel]).astype(np.int64))
+        parts["kind"].append(kind[sel])
+        parts["pos"].append(pos)
+        parts["view"].append(-dirs[sel])
+        parts["prim"].append(prim[sel])
+        # depth below the surface at which the camera ray meets the core (inf where it misses)
+        os_ = (origins[sel, 0], origins[sel, 1], origins[sel, 2])
+        ds_ = (dirs[sel, 0], dirs[sel, 1], dirs[sel, 2])
+        ca, _cb, ch = ellipsoid_interval(scene.core, os_, ds_)
+        parts["depth"].append(np.where(ch & (kind[sel] == KIND_OBJECT), ca - th[sel], np.inf))
+    if not parts["index"]:
+        z3 = np.zeros((0, 3), np.float32)
+        return ViewHits(
+            width, height, np.zeros(0, np.int64), np.zeros(0, np.int8), z3.astype(float), z3, z3, z3
+        )
+    index = np.concatenate(parts["index"])
+    kind = np.concatenate(parts["kind"])
+    pos = np.concatenate(parts["pos"])
+    view = np.concatenate(parts["view"]).astype(np.float32)
+    prim = np.concatenate(parts["prim"])
+    depth = np.concatenate(parts["depth"])
+    normal = np.zeros_like(pos)
+    p3 = (pos[:, 0], pos[:, 1], pos[:, 2])
+    for k, e in enumerate(scene.body):
+        s = prim == k
+        if s.any():
+            n = ellipsoid_normal(e, tuple(c[s] for c in p3))
+            normal[s] = np.stack(n, axis=-1)
+    side = (kind == KIND_STAND) & (prim == -2)
+    radial = pos[side, :2] - np.asarray(scene.stand.centre_xy)
+    normal[side, :2] = radial / np.linalg.norm(radial, axis=-1, keepdims=True)
+    normal[(kind == KIND_STAND) & (prim == -1), 2] = 1.0
+    albedo = np.zeros((len(index), 3), np.float32)
+    obj = kind == KIND_OBJECT
+    if obj.any():
+        surf = object_albedo(tex, pos[obj], np.asarray(mat.base_rgb, np.float32))
+        core_pts = (
+            pos[obj] - view[obj].astype(float) * np.where(np.isfinite(depth[obj]), depth[obj], 0)[:, None]
+        )
+        core = core_albedo(tex, core_pts, np.asarray(mat.core_rgb, np.float32))
+        vis = mat.core_opacity * np.exp(
+            -mat.sigma_view * np.where(np.isfinite(depth[obj]), depth[obj], np.inf)
+        )
+        vis = vis.astype(np.float32)[:, None]
+        albedo[obj] = (1.0 - vis) * surf + vis * core
+    st = kind == KIND_STAND
+    if st.any():
+        albedo[st] = stand_albedo(tex, pos[st], np.asarray(mat.stand_rgb, np.float32))
+    return ViewHits(width, height, index, kind, pos, normal.astype(np.float32), view, albedo)
+
+
+# ---- shading -----------------------------------------------------------------------------------------
+def shade(
+    scene: SimScene, hits: ViewHits, light_pos: np.ndarray, intensity: np.ndarray | float
+) -> np.ndarray:
+    """(N, 3) float32 radiance of the hit points under one point light (linear in `intensity`, RGB or scalar)."""
+    mat = scene.material
+    inten = np.broadcast_to(np.asarray(intensity, np.float32), (3,))
+    p = hits.pos
+    L = np.asarray(light_pos, np.float64)[None, :] - p
+    r2 = np.einsum("ij,ij->i", L, L)
+    ldir = (L / np.sqrt(r2)[:, None]).astype(np.float32)
+    E = (1.0 / r2).astype(np.float32)  # irradiance per unit intensity at normal incidence
+    n, v = hits.normal, hits.view
+    ndl = np.einsum("ij,ij->i", n, ldir)
+    h = ldir + v
+    h /= np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-12)
+    ndh = np.maximum(np.einsum("ij,ij->i", n, h), 0)
+    o = (p[:, 0], p[:, 1], p[:, 2])
+    d = (ldir[:, 0].astype(np.float64), ldir[:, 1].astype(np.float64), ldir[:, 2].astype(np.float64))
+    out = np.zeros((len(p), 3), np.float32)
+
+    obj = hits.kind == KIND_OBJECT
+    if obj.any():
+        oo = tuple(c[obj] for c in o)
+        do = tuple(c[obj] for c in d)
+        # the opaque stand blocks light (start slightly off the surface to avoid self-hits)
+        sa, sb, sh, _ = cylinder_interval(scene.stand, oo, do)
+        vis = ~(sh & (sb > 1e-6))
+        # distance travelled inside the wax towards the light, and where the light enters it
+        intervals = [ellipsoid_interval(e, oo, do) for e in scene.body]
+        thick, far = union_length(intervals)
+        ca, cb, ch = ellipsoid_interval(scene.core, oo, do)
+        core_shadow = _core_shadow(ca, cb, ch, mat.core_opacity)
+        entry = tuple(oo[i] + far * do[i] for i in range(3))
+        ne = _union_normal(scene, entry)
+        ne_dot = np.maximum(ne[0] * do[0] + ne[1] * do[1] + ne[2] * do[2], 0).astype(np.float32)
+        trans = np.exp(-np.outer(thick, np.asarray(mat.sigma_tr))).astype(np.float32)
+        trans *= (ne_dot * core_shadow)[:, None] / np.pi
+        ndl_o = ndl[obj]
+        wrap = np.maximum(ndl_o + mat.wrap, 0) / (np.pi * (1.0 + mat.wrap) ** 2)
+        spec = (
+            mat.ks * (mat.shininess + 8.0) / (8.0 * np.pi) * ndh[obj] ** mat.shininess * np.maximum(ndl_o, 0)
+        )
+        diffuse = (mat.kd * wrap)[:, None] + mat.kt * trans
+        rad = diffuse * hits.albedo[obj] + spec[:, None]
+        out[obj] = rad * (E[obj] * vis)[:, None]
+
+    st = hits.kind == KIND_STAND
+    if st.any():
+        os_ = tuple(c[st] for c in o)
+        ds_ = tuple(c[st] for c in d)
+        thick, _ = union_length([ellipsoid_interval(e, os_, ds_) for e in scene.body])
+        ca, cb, ch = ellipsoid_interval(scene.core, os_, ds_)
+        shadow = np.exp(-mat.sigma_shadow * thick) * _core_shadow(ca, cb, ch, 1.0)
+        ndl_s = np.maximum(ndl[st], 0)
+        spec = mat.stand_ks * (40.0 + 8.0) / (8.0 * np.pi) * ndh[st] ** 40.0 * ndl_s
+        rad = hits.albedo[st] * (ndl_s / np.pi)[:, None] + spec[:, None]
+        out[st] = rad * (E[st] * shadow)[:, None]
+    return out * inten[None, :]
+
+
+def _core_shadow(a: np.ndarray, b: np.ndarray, hit: np.ndarray, opacity: float) -> np.ndarray:
+    """Fraction of diffused light passing the opaque core along a light ray: soft (diffusion blurs its shadow),
+    darkest where the ray's chord through the core is long."""
+    chord = np.where(hit, np.maximum(b, 0) - np.maximum(a, 0), 0)
+    return (1.0 - opacity * (1.0 - np.exp(-chord / 0.012))).astype(np.float32)
+
+
+def _union_normal(scene: SimScene, p: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Outward normal at points on the union surface: that of the ellipsoid whose boundary is nearest."""
+    best = np.full(p[0].shape, np.inf)
+    nx, ny, nz = (np.zeros_like(p[0]) for _ in range(3))
+    for e in scene.body:
+        q = [(p[i] - e.centre[i]) / e.radii[i] for i in range(3)]
+        err = np.abs(np.sqrt(q[0] ** 2 + q[1] ** 2 + q[2] ** 2) - 1.0)
+        better = err < best
+        best = np.where(better, err, best)
+        n = ellipsoid_normal(e, p)
+        nx, ny, nz = (np.where(better, n[i], (nx, ny, nz)[i]) for i in range(3))
+    return nx, ny, nz
+
+
+def render_hits(
+    scene: SimScene, hits: ViewHits, light_positions: np.ndarray, intensities: np.ndarray | float = 1.0
+) -> np.ndarray:
+    """(H, W, 3) float32 clean radiance (background 0) for a sum of point lights."""
+    light_positions = np.atleast_2d(np.asarray(light_positions, np.float64))
+    inten = np.asarray(intensities, np.float32)
+    if inten.ndim == 0:
+        inten = np.full(len(light_positions), inten)
+    if len(inten) != len(light_positions):
+        raise LightstageError(f"{len(light_positions)} lights but {len(inten)} intensities")
+    acc = np.zeros((len(hits.index), 3), np.float32)
+    for p, i in zip(light_positions, inten, strict=True):
+        acc += shade(scene, hits, p, i)
+    img = np.zeros((hits.height * hits.width, 3), np.float32)
+    img[hits.index] = acc
+    return img.reshape(hits.height, hits.width, 3)

@@ -1,0 +1,418 @@
+"""Simulated light-stage captures with ground truth: `simulate_capture(out, preset, seed)` writes a complete raw
+capture (stage.yaml with NOMINAL geometry, capture.yaml, half EXR frames) plus `out/ground_truth/` (true
+geometry, masks, clean renders, scene description) and `out/contact_sheet.png`.
+
+Presets: `tiny` (unit tests, seconds), `small` (the demo; large enough for SfM), `paper` (the full reference
+stage; only with --groups/--cameras/--lights subsets, for benchmarks). Deterministic for a seed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lightstage.atomic import write_json_atomic
+from lightstage.calibration.record import Calibration, ViewCalibration
+from lightstage.cameras import PinholeCamera, rotation_axis_angle
+from lightstage.capture.layout import (
+    CAPTURE_FILE,
+    DEFAULT_PATH_TEMPLATE,
+    STAGE_FILE,
+    CaptureInfo,
+    ViewId,
+    save_capture_info,
+)
+from lightstage.capture.presets import PAPER_RESOLUTION, make_stage
+from lightstage.capture.sim_render import ViewJob, ViewRecord, render_view, run_view_job
+from lightstage.capture.sim_scene import SimScene, cast_view, default_scene, render_hits
+from lightstage.capture.stage import LightSpec, Stage
+from lightstage.errors import LightstageError
+from lightstage.rig import TurntableAxis, camera_pose_in_world, light_position_in_world
+
+GROUND_TRUTH = "ground_truth"
+CONTACT_SHEET = "contact_sheet.png"
+
+
+@dataclass(frozen=True)
+class SimPreset:
+    """Counts and raw resolution of a simulated stage, and how many lights get clean GT renders."""
+
+    name: str
+    num_groups: int
+    num_cameras: int
+    num_lights: int
+    width: int
+    height: int
+    clean_lights: int = 4  # lights (spread over the sphere) rendered clean for every view
+    requires_selection: bool = False  # `paper`: too big to simulate whole
+
+    @property
+    def num_frames(self) -> int:
+        return self.num_groups * self.num_cameras * self.num_lights
+
+
+SIM_PRESETS: dict[str, SimPreset] = {
+    "tiny": SimPreset("tiny", 9, 4, 12, 256, 172, clean_lights=3),
+    "small": SimPreset("small", 9, 20, 36, 1024, 684, clean_lights=4),
+    "paper": SimPreset("paper", 9, 20, 331, *PAPER_RESOLUTION, clean_lights=2, requires_selection=True),
+}
+
+
+@dataclass(frozen=True)
+class Jitter:
+    """Standard deviations of the seeded deviations of the true stage from the nominal one."""
+
+    camera_rot_deg: float = 0.3
+    camera_pos_m: float = 0.003
+    light_pos_m: float = 0.003
+    axis_tilt_deg: float = 0.35
+    axis_offset_m: float = 0.003
+    yaw_deg: float = 0.05
+
+
+@dataclass(frozen=True)
+class TrueGeometry:
+    """The true (jittered) stage: rig-frame camera poses and light positions, turntable axis, yaws."""
+
+    cameras: dict[str, tuple[np.ndarray, np.ndarray]]  # id -> (R_rig, t_rig)
+    lights_rig: np.ndarray  # (L, 3)
+    axis: TurntableAxis
+    yaws_deg: dict[str, float]
+
+    def view_camera(self, stage: Stage, group: str, camera: str) -> PinholeCamera:
+        R, t = camera_pose_in_world(*self.cameras[camera], self.yaws_deg[group], self.axis)
+        return PinholeCamera(stage.camera(camera).K, R, t, stage.width, stage.height)
+
+    def light_positions(self, group: str) -> np.ndarray:
+        return light_position_in_world(self.lights_rig, self.yaws_deg[group], self.axis)
+
+
+def true_geometry(stage: Stage, seed: int, jitter: Jitter = Jitter()) -> TrueGeometry:
+    """Seeded true geometry: per-camera rotation/position jitter, per-light jitter, tilted/offset axis, yaws."""
+    rng = np.random.default_rng([seed, 1])
+    cams = {}
+    for c in stage.cameras:
+        axis = rng.standard_normal(3)
+        dR = rotation_axis_angle(axis, np.deg2rad(jitter.camera_rot_deg) * rng.standard_normal())
+        centre = -c.R.T @ c.t + jitter.camera_pos_m * rng.standard_normal(3)
+        R = dR @ c.R
+        cams[c.id] = (R, -R @ centre)
+    lights = stage.light_positions_rig() + jitter.light_pos_m * rng.standard_normal((len(stage.lights), 3))
+    tilt_about = np.array([*rng.standard_normal(2), 0.0])
+    tilt = np.deg2rad(jitter.axis_tilt_deg) * (0.5 + 0.5 * rng.random())
+    direction = rotation_axis_angle(tilt_about, tilt) @ np.array([0.0, 0.0, 1.0])
+    point = np.array([*(jitter.axis_offset_m * rng.standard_normal(2)), 0.0])
+    yaws = {g.name: float(g.yaw_deg + jitter.yaw_deg * rng.standard_normal()) for g in stage.groups}
+    # group 000 defines the world frame's orientation; keep its yaw exact
+    yaws[stage.groups[0].name] = stage.groups[0].yaw_deg
+    return TrueGeometry(cams, lights, TurntableAxis(tuple(direction), tuple(point)), yaws)
+
+
+# ---- selection -----------------------------------------------------------------------------------------
+def _parse_indices(
+    spec: str | list | tuple | None, count: int, what: str, names: list[str] | None = None
+) -> list[int]:
+    """Parse a selector ("0,3,5-8", names, or a list) into sorted unique 0-based indices."""
+    if spec is None:
+        return list(range(count))
+    items = spec.split(",") if isinstance(spec, str) else list(spec)
+    out: set[int] = set()
+    for raw in items:
+        item = str(raw).strip()
+        if not item:
+            continue
+        if names is not None and item in names:
+            out.add(names.index(item))
+            continue
+        try:
+            if "-" in item[1:]:
+                a, b = item.split("-", 1)
+                lo, hi = int(a), int(b)
+                if lo > hi:
+                    raise ValueError
+                out.update(range(lo, hi + 1))
+            else:
+                out.add(int(item))
+        except ValueError:
+            known = f" or one of {', '.join(names[:6])}{'...' if len(names) > 6 else ''}" if names else ""
+            raise LightstageError(
+                f"--{what}: cannot parse {item!r} (use indices like 0,3,5-8{known})"
+            ) from None
+    bad = [i for i in out if not 0 <= i < count]
+    if bad:
+        raise LightstageError(f"--{what}: index {bad[0]} out of range (the preset has {count} {what})")
+    if not out:
+        raise LightstageError(f"--{what}: empty selection")
+    return sorted(out)
+
+
+def _select_stage(full: Stage, groups: list[int], cameras: list[int], lights: list[int]) -> Stage:
+    """A stage restricted to the selected groups/cameras/lights (lights renumbered 0..k-1, as stage.yaml needs)."""
+    sel_lights = tuple(LightSpec(k, full.lights[i].position) for k, i in enumerate(lights))
+    return replace(
+        full,
+        cameras=tuple(full.cameras[i] for i in cameras),
+        lights=sel_lights,
+        groups=tuple(full.groups[i] for i in groups),
+    )
+
+
+def clean_light_choice(num_lights: int, count: int) -> list[int]:
+    """Lights with clean GT renders: spread evenly over the index range (so over the light sphere)."""
+    count = min(count, num_lights)
+    return sorted({int(round(x)) for x in np.linspace(num_lights * 0.15, num_lights - 1, count)})
+
+
+# ---- the entry point ---------------------------------------------------------------------------------------
+def simulate_capture(
+    out: Path,
+    preset: str = "tiny",
+    seed: int = 0,
+    groups: Any = None,
+    cameras: Any = None,
+    lights: Any = None,
+    workers: int | None = None,
+    progress: bool = True,
+) -> Path:
+    """Simulate a raw capture with ground truth into `out` (created; must be empty or absent); returns `out`."""
+    if preset not in SIM_PRESETS:
+        raise LightstageError(f"unknown simulator preset {preset!r} (known: {', '.join(SIM_PRESETS)})")
+    if not isinstance(seed, int) or seed < 0:
+        raise LightstageError(f"seed must be a non-negative integer, got {seed!r}")
+    p = SIM_PRESETS[preset]
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise LightstageError(f"{out}: output exists and is not an empty directory")
+    if p.requires_selection and (groups is None or cameras is None or lights is None):
+        raise LightstageError(
+            f"preset {preset!r} has {p.num_frames} frames of {p.width}x{p.height}; "
+            "select a subset with --groups, --cameras and --lights"
+        )
+    full = make_stage(
+        f"sim-{preset}", p.num_cameras, p.num_lights, p.width, p.height, num_groups=p.num_groups
+    )
+    gsel = _parse_indices(groups, len(full.groups), "groups", full.group_names)
+    csel = _parse_indices(cameras, len(full.cameras), "cameras", full.camera_ids)
+    lsel = _parse_indices(lights, len(full.lights), "lights")
+    truth_full = true_geometry(full, seed)
+    stage = _select_stage(full, gsel, csel, lsel)
+    truth = replace(truth_full, lights_rig=truth_full.lights_rig[lsel])
+    scene = default_scene(texture_seed=seed)
+
+    start = time.perf_counter()
+    out.mkdir(parents=True, exist_ok=True)
+    stage.save(out / STAGE_FILE)
+    notes = {
+        "simulator": "lightstage.capture.simulate",
+        "preset": preset,
+        "seed": seed,
+        "ground_truth": GROUND_TRUTH,
+        "source_light_indices": lsel if len(lsel) != len(full.lights) else "all",
+    }
+    save_capture_info(
+        CaptureInfo(DEFAULT_PATH_TEMPLATE, 1.0, "sim-translucent-wax", notes), out / CAPTURE_FILE
+    )
+    clean = clean_light_choice(len(stage.lights), p.clean_lights)
+    gt = out / GROUND_TRUTH
+    _write_ground_truth(gt, stage, truth, scene, clean, seed, preset)
+
+    jobs = [
+        ViewJob(
+            root=out,
+            group=full.groups[gi].name,
+            camera=full.cameras[ci].id,
+            group_index=gi,
+            camera_index=ci,
+            camera_model=truth.view_camera(stage, full.groups[gi].name, full.cameras[ci].id),
+            light_positions=truth.light_positions(full.groups[gi].name),
+            light_ids=tuple(range(len(lsel))),
+            light_seed_ids=tuple(lsel),
+            clean_lights=tuple(clean),
+            scene=scene,
+            saturation=stage.saturation,
+            seed=seed,
+            path_template=DEFAULT_PATH_TEMPLATE,
+            attributes={"lightstage_simulator": f"{preset} seed {seed}"},
+        )
+        for gi in gsel
+        for ci in csel
+    ]
+    records = _run_jobs(jobs, workers, progress)
+    nuisances = {
+        "bulbs_in_view": [
+            {"group": r.group, "camera": r.camera, "light": lt, "pixels": n}
+            for r in records
+            for lt, n in r.bulbs.items()
+        ],
+        "flares": [
+            {"group": r.group, "camera": r.camera, "light": lt, "strength": s}
+            for r in records
+            for lt, s in r.flares.items()
+        ],
+    }
+    write_json_atomic(gt / "nuisances.json", nuisances)
+    write_contact_sheet(out, stage, clean)
+    if progress:
+        n = len(jobs) * len(lsel)
+        print(f"simulated {n} frames ({len(jobs)} views) into {out} in {time.perf_counter() - start:.1f} s")
+    return out
+
+
+def _run_jobs(jobs: list[ViewJob], workers: int | None, progress: bool) -> list[ViewRecord]:
+    """Render views serially or in a process pool; results in job order."""
+    from tqdm import tqdm
+
+    n = workers if workers is not None else min(len(os.sched_getaffinity(0)), 8)
+    n = max(1, min(n, len(jobs)))
+    bar = tqdm(total=len(jobs), desc="simulate views", unit="view", disable=not progress)
+    records: list[ViewRecord] = []
+    if n == 1:
+        for job in jobs:
+            records.append(render_view(job))
+            bar.update()
+    else:
+        import multiprocessing as mp
+
+        with ProcessPoolExecutor(n, mp_context=mp.get_context("spawn")) as pool:
+            for rec in pool.map(run_view_job, jobs, chunksize=1):
+                records.append(rec)
+                bar.update()
+    bar.close()
+    return records
+
+
+def _write_ground_truth(
+    gt: Path, stage: Stage, truth: TrueGeometry, scene: SimScene, clean: list[int], seed: int, preset: str
+) -> None:
+    """geometry.json (true cameras, lights, axis, yaws), scene.json, clean.json."""
+    views = {}
+    for g in stage.groups:
+        for c in stage.cameras:
+            cam = truth.view_camera(stage, g.name, c.id)
+            views[ViewId(g.name, c.id)] = ViewCalibration(cam.K, cam.R, cam.t, stage.width, stage.height)
+    Calibration(
+        method="ground_truth",
+        views=views,
+        light_positions={g.name: truth.light_positions(g.name) for g in stage.groups},
+        axis=truth.axis,
+        yaws_deg={g.name: truth.yaws_deg[g.name] for g in stage.groups},
+    ).save(gt / "geometry.json")
+    sc = scene.to_dict()
+    sc["seed"] = seed
+    sc["preset"] = preset
+    sc["units"] = "m; radiance in the stage's linear units (capture exposure_scale 1)"
+    write_json_atomic(gt / "scene.json", sc)
+    write_json_atomic(
+        gt / "clean.json",
+        {
+            "lights": clean,
+            "views": "all",
+            "path_template": "ground_truth/clean/{group}/{camera}/{light:03d}.exr",
+            "content": "noise-free, unclipped float32 radiance of object + stand; background, bulbs, flare = 0",
+        },
+    )
+
+
+def write_contact_sheet(root: Path, stage: Stage, lights: list[int], max_views: int = 4) -> Path:
+    """A grid of a few views x lights of the raw frames, tonemapped (one exposure), as contact_sheet.png."""
+    import cv2
+
+    from lightstage.capture.frames import read_exr, write_image
+    from lightstage.tonemap import tonemap_u8
+
+    cams = stage.camera_ids
+    views = [(stage.groups[(k * 2) % len(stage.groups)].name, cams[k % len(cams)]) for k in range(max_views)]
+    views = list(dict.fromkeys(views))
+    lights = lights[:4] if lights else [0]
+    tile_w = min(stage.width, 320)
+    tile_h = int(round(stage.height * tile_w / stage.width))
+    tiles = []
+    for g, c in views:
+        row = []
+        for lt in lights:
+            img = read_exr(root / DEFAULT_PATH_TEMPLATE.format(group=g, camera=c, light=lt)).astype(
+                np.float32
+            )
+            row.append(cv2.resize(img, (tile_w, tile_h), interpolation=cv2.INTER_AREA))
+        tiles.append(row)
+    pad = 4
+    sheet = np.zeros((len(views) * (tile_h + pad) + pad, len(lights) * (tile_w + pad) + pad, 3), np.float32)
+    for i, row in enumerate(tiles):
+        for j, img in enumerate(row):
+            y, x = pad + i * (tile_h + pad), pad + j * (tile_w + pad)
+            sheet[y : y + tile_h, x : x + tile_w] = img
+    sheet_u8 = tonemap_u8(sheet, exposure=1.6)
+    path = root / CONTACT_SHEET
+    write_image(path, sheet_u8)
+    return path
+
+
+# ---- ground-truth access for tests and scorers -------------------------------------------------------------
+def load_scene(capture_root: Path) -> SimScene:
+    """The SimScene of a simulated capture (from ground_truth/scene.json)."""
+    path = Path(capture_root) / GROUND_TRUTH / "scene.json"
+    try:
+        return SimScene.from_dict(json.loads(path.read_text()))
+    except OSError as e:
+        raise LightstageError(f"{path}: cannot read ({e.strerror}); is this a simulated capture?") from None
+    except json.JSONDecodeError as e:
+        raise LightstageError(f"{path}: invalid JSON ({e})") from None
+
+
+def load_truth(capture_root: Path) -> Calibration:
+    """The true geometry of a simulated capture (ground_truth/geometry.json)."""
+    return Calibration.load(Path(capture_root) / GROUND_TRUTH / "geometry.json")
+
+
+def render_clean(
+    source: Path | SimScene,
+    group: str,
+    camera: str | PinholeCamera,
+    light_positions: np.ndarray,
+    intensities: Any = None,
+) -> np.ndarray:
+    """(H, W, 3) float32 noise-free, unclipped radiance of object + stand for any set of point lights.
+
+    `source`: a simulated capture root (scene and true camera read from ground_truth/) or a SimScene, in which
+    case `camera` must be a PinholeCamera. `intensities`: one per light (scalar or RGB); default: the stage's."""
+    if isinstance(source, SimScene):
+        scene = source
+        if not isinstance(camera, PinholeCamera):
+            raise LightstageError("render_clean with a SimScene needs a PinholeCamera")
+        cam = camera
+    else:
+        scene = load_scene(source)
+        if isinstance(camera, PinholeCamera):
+            cam = camera
+        else:
+            truth = load_truth(source)
+            view = truth.views.get(ViewId(group, camera))
+            if view is None:
+                raise LightstageError(f"{source}: no view {group}/{camera} in the ground truth")
+            cam = view.camera(downscale=1)
+    light_positions = np.atleast_2d(np.asarray(light_positions, np.float64))
+    if intensities is None:
+        intensities = np.full(len(light_positions), scene.light_intensity, np.float32)
+    hits = cast_view(scene, cam.K, cam.R, cam.t, cam.width, cam.height)
+    return render_hits(scene, hits, light_positions, intensities)
+
+
+__all__ = [
+    "SIM_PRESETS",
+    "SimPreset",
+    "Jitter",
+    "TrueGeometry",
+    "true_geometry",
+    "simulate_capture",
+    "render_clean",
+    "load_scene",
+    "load_truth",
+    "write_contact_sheet",
+]
