@@ -1,13 +1,17 @@
 """HDR frame I/O: OpenEXR for EXR (half/float, RGB/RGBA, ZIP/PIZ, provenance attributes), OpenImageIO for
 other formats (Radiance HDR, TIFF, PNG). Every failure is a LightstageError naming the file.
 
-The header's data window is checked against the expected resolution (or a pixel-count ceiling) before any
-pixels are decoded, so a hostile header cannot trigger a multi-GB allocation.
+EXR headers are parsed here in pure Python (bounded reads, no native code), so a hostile file is refused
+before any native decoder sees it: the data window is checked against the expected resolution and a
+pixel/byte ceiling, the chunk offset table against the file size (truncation), channel types and sampling
+against what `read_exr` can return. Only then does OpenEXR decode the pixels.
 """
 
 from __future__ import annotations
 
+import math
 import os
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,7 +23,35 @@ from lightstage.errors import LightstageError
 
 # No frame of a supported stage is larger than this (8192x5464 is 44.8 Mpx); guards hostile headers.
 MAX_PIXELS = 16384 * 16384
+# Ceiling on the bytes one decode may allocate (all channels of all parts), checked before decoding.
+MAX_DECODE_BYTES = 4 << 30
+# Real EXR headers are a few KB; a header that does not end within this many bytes is refused.
+MAX_HEADER_BYTES = 1 << 20
+MAX_CHANNELS = 1024
+# Side limits handed to OpenEXR's own guard (setMaxImageSize / setMaxTileSize) as a second line of defence.
+MAX_SIDE = 65536
 COMPRESSIONS = ("zip", "piz", "none")
+
+EXR_MAGIC = b"\x76\x2f\x31\x01"
+_FLAG_TILED, _FLAG_LONG_NAMES, _FLAG_DEEP, _FLAG_MULTIPART = 0x200, 0x400, 0x800, 0x1000
+# OpenEXR compression enum -> (name, scanlines per chunk; None where the count is not known here)
+_COMPRESSION = {
+    0: ("none", 1),
+    1: ("rle", 1),
+    2: ("zips", 1),
+    3: ("zip", 16),
+    4: ("piz", 32),
+    5: ("pxr24", 16),
+    6: ("b44", 32),
+    7: ("b44a", 32),
+    8: ("dwaa", 32),
+    9: ("dwab", 256),
+    10: ("htj2k256", 256),
+    11: ("htj2k32", 32),
+    12: ("lj2k", None),
+    13: ("zstd", None),
+}
+_PIXEL_TYPES = {0: ("uint", 4), 1: ("half", 2), 2: ("float", 4)}
 
 
 @dataclass(frozen=True)
@@ -32,10 +64,22 @@ class FrameHeader:
     channels: dict[str, str]  # name -> 'half' | 'float' | 'uint'
     compression: str
     attributes: dict[str, Any] = field(default_factory=dict)
+    subsampled: tuple[str, ...] = ()  # channels with x/y sampling != 1
+    tiled: bool = False
+    parts: int = 1
+    decode_bytes: int = 0  # what decoding every channel of every part allocates
+    chunk_problem: str | None = None  # set when the chunk table shows truncation / an unfinished file
 
     @property
     def dtype(self) -> str:
         kinds = set(self.channels.values())
+        return kinds.pop() if len(kinds) == 1 else "mixed"
+
+    def rgb_dtype(self) -> str:
+        """Sample type of the R, G, B channels ('half', 'float', 'mixed' or '' when one is missing)."""
+        kinds = {self.channels.get(c, "") for c in "RGB"}
+        if "" in kinds:
+            return ""
         return kinds.pop() if len(kinds) == 1 else "mixed"
 
 
@@ -48,34 +92,322 @@ def _exr_compression(name: str) -> Any:
     return table[name]
 
 
-def read_exr_header(path: str | os.PathLike[str]) -> FrameHeader:
-    """Parse an EXR header only (fast: no pixel decoding), through OpenImageIO's spec."""
-    import OpenImageIO as oiio
+class _Bad(Exception):
+    """Internal: a structural problem in an EXR file (turned into a LightstageError naming the file)."""
 
+
+@dataclass
+class _Part:
+    attrs: dict[str, tuple[str, bytes]]
+    channels: dict[str, tuple[str, int, int, int]]  # name -> (type, bytes, xsampling, ysampling)
+    window: tuple[int, int, int, int]
+    compression: int
+    tiles: tuple[int, int, int, int] | None  # (xsize, ysize, level mode, rounding mode)
+    kind: str
+
+
+def read_exr_header(path: str | os.PathLike[str]) -> FrameHeader:
+    """Parse an EXR header only (fast, pure Python, bounded reads: safe on hostile files).
+
+    Raises a LightstageError naming the file for anything that is not a well-formed flat (non-deep) EXR
+    header; truncation found in the chunk table is reported in `chunk_problem` (read_exr refuses it).
+    """
     path = Path(path)
     _check_file(path)
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise LightstageError(f"{path}: not a readable EXR header ({_first_line(oiio.geterror())})")
     try:
-        if inp.format_name() != "openexr":
-            raise LightstageError(f"{path}: not an EXR file (looks like {inp.format_name()})")
-        spec = inp.spec()
-        formats = spec.channelformats or [spec.format] * spec.nchannels
-        channels = {
-            n: _TYPE_NAMES.get(str(f), str(f)) for n, f in zip(spec.channelnames, formats, strict=True)
-        }
-        attributes = {a.name: a.value for a in spec.extra_attribs if isinstance(a.value, str | int | float)}
-        compression = str(spec.getattribute("compression") or "unknown")
-        width, height = spec.width, spec.height
-    finally:
-        inp.close()
-    if width <= 0 or height <= 0:
-        raise LightstageError(f"{path}: invalid data window {width}x{height}")
-    return FrameHeader(path, width, height, channels, compression, attributes)
+        size = path.stat().st_size
+        with path.open("rb") as f:
+            head = f.read(min(size, 65536))
+            if len(head) < 8 or head[:4] != EXR_MAGIC:
+                raise _Bad("not an EXR file (bad magic number)")
+            try:
+                parts, table_at, flags = _parse_headers(head, size)
+            except _NeedMore:
+                head = head + f.read(min(size, MAX_HEADER_BYTES) - len(head))
+                try:
+                    parts, table_at, flags = _parse_headers(head, size)
+                except _NeedMore:
+                    raise _Bad(f"header does not end within {min(size, MAX_HEADER_BYTES)} bytes") from None
+            chunk_problem = _check_chunk_tables(f, parts, table_at, size, bool(flags & _FLAG_MULTIPART))
+    except _Bad as e:
+        raise LightstageError(f"{path}: {e}") from None
+    except OSError as e:
+        raise LightstageError(f"{path}: cannot read ({e.strerror or e})") from None
+    first = parts[0]
+    x0, y0, x1, y1 = first.window
+    channels = {n: t for n, (t, _, _, _) in first.channels.items()}
+    subsampled = tuple(n for n, (_, _, xs, ys) in first.channels.items() if (xs, ys) != (1, 1))
+    decode_bytes = sum(
+        (p.window[2] - p.window[0] + 1)
+        * (p.window[3] - p.window[1] + 1)
+        * sum(c[1] for c in p.channels.values())
+        for p in parts
+    )
+    return FrameHeader(
+        path=path,
+        width=x1 - x0 + 1,
+        height=y1 - y0 + 1,
+        channels=channels,
+        compression=_COMPRESSION[first.compression][0],
+        attributes=_plain_attributes(first.attrs),
+        subsampled=subsampled,
+        tiled=first.tiles is not None,
+        parts=len(parts),
+        decode_bytes=decode_bytes,
+        chunk_problem=chunk_problem,
+    )
 
 
-_TYPE_NAMES = {"half": "half", "float": "float", "uint": "uint", "uint32": "uint"}
+class _NeedMore(Exception):
+    """Internal: the header runs past the bytes read so far."""
+
+
+def _parse_headers(buf: bytes, file_size: int) -> tuple[list[_Part], int, int]:
+    """Parse the version field and every part header in `buf`; return (parts, offset of the chunk table, flags)."""
+    (version,) = struct.unpack_from("<i", buf, 4)
+    flags = version & ~0xFF
+    if version & 0xFF != 2:
+        raise _Bad(f"unsupported EXR version {version & 0xFF}")
+    if flags & ~(_FLAG_TILED | _FLAG_LONG_NAMES | _FLAG_DEEP | _FLAG_MULTIPART):
+        raise _Bad(f"unknown EXR version flags 0x{flags:x}")
+    if flags & _FLAG_DEEP and not flags & _FLAG_MULTIPART:
+        raise _Bad("deep EXR data is not supported (frames must be flat images)")
+    max_name = 255 if flags & _FLAG_LONG_NAMES else 31
+    pos, parts = 8, []
+    while True:
+        attrs, pos = _parse_attributes(buf, pos, max_name, file_size)
+        parts.append(_make_part(attrs, flags, len(parts)))
+        if not flags & _FLAG_MULTIPART:
+            break
+        if pos >= len(buf):
+            raise _NeedMore
+        if buf[pos] == 0:  # an empty header ends the list of parts
+            pos += 1
+            break
+        if len(parts) >= 1024:
+            raise _Bad("more than 1024 parts")
+    return parts, pos, flags
+
+
+def _cstring(buf: bytes, pos: int, limit: int, what: str) -> tuple[str, int]:
+    end = buf.find(b"\0", pos, pos + limit + 1)
+    if end < 0:
+        if len(buf) - pos <= limit:
+            raise _NeedMore
+        raise _Bad(f"{what} longer than {limit} characters at byte {pos}")
+    try:
+        return buf[pos:end].decode("utf-8"), end + 1
+    except UnicodeDecodeError:
+        raise _Bad(f"{what} is not valid UTF-8 at byte {pos}") from None
+
+
+def _parse_attributes(
+    buf: bytes, pos: int, max_name: int, file_size: int
+) -> tuple[dict[str, tuple[str, bytes]], int]:
+    attrs: dict[str, tuple[str, bytes]] = {}
+    while True:
+        if pos >= len(buf):
+            raise _NeedMore
+        if buf[pos] == 0:
+            return attrs, pos + 1
+        name, pos = _cstring(buf, pos, max_name, "attribute name")
+        kind, pos = _cstring(buf, pos, max_name, f"type of attribute {name!r}")
+        if pos + 4 > len(buf):
+            raise _NeedMore
+        (n,) = struct.unpack_from("<i", buf, pos)
+        pos += 4
+        if n < 0 or pos + n > min(file_size, MAX_HEADER_BYTES):
+            raise _Bad(f"attribute {name!r} has an invalid size {n}")
+        if pos + n > len(buf):
+            raise _NeedMore
+        attrs[name] = (kind, buf[pos : pos + n])
+        pos += n
+        if len(attrs) > 10000:
+            raise _Bad("more than 10000 header attributes")
+
+
+def _make_part(attrs: dict[str, tuple[str, bytes]], flags: int, index: int) -> _Part:
+    where = f"part {index}: " if flags & _FLAG_MULTIPART else ""
+
+    def need(name: str, kind: str, size: int | None) -> bytes:
+        if name not in attrs:
+            raise _Bad(f"{where}missing required header attribute {name!r}")
+        k, v = attrs[name]
+        if k != kind or (size is not None and len(v) != size):
+            raise _Bad(f"{where}header attribute {name!r} has type {k!r} ({len(v)} bytes), expected {kind!r}")
+        return v
+
+    kind = "tiledimage" if flags & _FLAG_TILED else "scanlineimage"
+    if "type" in attrs:
+        kind = attrs["type"][1].split(b"\0")[0].decode("ascii", "replace")
+    if kind.startswith("deep"):
+        raise _Bad(f"{where}deep EXR data is not supported (frames must be flat images)")
+    if kind not in ("scanlineimage", "tiledimage"):
+        raise _Bad(f"{where}unknown part type {kind!r}")
+    window = struct.unpack("<4i", need("dataWindow", "box2i", 16))
+    x0, y0, x1, y1 = window
+    if x1 < x0 or y1 < y0:
+        raise _Bad(f"{where}invalid data window ({x0}, {y0})-({x1}, {y1})")
+    (compression,) = need("compression", "compression", 1)
+    if compression not in _COMPRESSION:
+        raise _Bad(f"{where}unknown compression type {compression}")
+    channels = _parse_channels(need("channels", "chlist", None), where)
+    tiles = None
+    if kind == "tiledimage":
+        xs, ys, mode = struct.unpack("<IIB", need("tiles", "tiledesc", 9))
+        if not (1 <= xs <= MAX_SIDE and 1 <= ys <= MAX_SIDE) or mode & 0xF > 2 or mode >> 4 > 1:
+            raise _Bad(f"{where}invalid tile description {xs}x{ys} mode {mode}")
+        tiles = (xs, ys, mode & 0xF, mode >> 4)
+    return _Part(attrs, channels, window, compression, tiles, kind)
+
+
+def _parse_channels(data: bytes, where: str) -> dict[str, tuple[str, int, int, int]]:
+    channels: dict[str, tuple[str, int, int, int]] = {}
+    pos = 0
+    while True:
+        if pos >= len(data):
+            raise _Bad(f"{where}channel list is not terminated")
+        if data[pos] == 0:
+            break
+        try:
+            name, pos = _cstring(data, pos, 255, "channel name")
+        except _NeedMore:
+            raise _Bad(f"{where}channel list is not terminated") from None
+        if pos + 16 > len(data):
+            raise _Bad(f"{where}channel {name!r}: truncated channel description")
+        ptype, _linear, xs, ys = struct.unpack_from("<iB3xii", data, pos)
+        pos += 16
+        if ptype not in _PIXEL_TYPES:
+            raise _Bad(f"{where}channel {name!r}: unknown pixel type {ptype}")
+        if xs < 1 or ys < 1:
+            raise _Bad(f"{where}channel {name!r}: invalid sampling {xs}x{ys}")
+        if name in channels:
+            raise _Bad(f"{where}duplicate channel {name!r}")
+        channels[name] = (*_PIXEL_TYPES[ptype], xs, ys)
+        if len(channels) > MAX_CHANNELS:
+            raise _Bad(f"{where}more than {MAX_CHANNELS} channels")
+    if not channels:
+        raise _Bad(f"{where}no channels")
+    return channels
+
+
+def _chunk_count(part: _Part) -> int | None:
+    """Number of chunks the part's offset table holds (None when unknown for its compression)."""
+    if "chunkCount" in part.attrs:
+        kind, value = part.attrs["chunkCount"]
+        if kind == "int" and len(value) == 4:
+            return struct.unpack("<i", value)[0]
+    x0, y0, x1, y1 = part.window
+    w, h = x1 - x0 + 1, y1 - y0 + 1
+    if part.tiles is None:
+        lines = _COMPRESSION[part.compression][1]
+        return None if lines is None else -(-h // lines)
+    tx, ty, mode, rounding = part.tiles
+
+    def levels(n: int) -> int:
+        return (math.ceil(math.log2(n)) if rounding else int(math.log2(n))) + 1
+
+    def size(n: int, level: int) -> int:
+        return max(1, -(-n // (1 << level)) if rounding else n >> level)
+
+    def tiles(lx: int, ly: int) -> int:
+        return -(-size(w, lx) // tx) * -(-size(h, ly) // ty)
+
+    if mode == 0:
+        return tiles(0, 0)
+    if mode == 1:
+        return sum(tiles(lv, lv) for lv in range(levels(max(w, h))))
+    return sum(tiles(lx, ly) for lx in range(levels(w)) for ly in range(levels(h)))
+
+
+def _check_chunk_tables(f: Any, parts: list[_Part], table_at: int, size: int, multipart: bool) -> str | None:
+    """Read the chunk offset tables and check they point inside the file; None when the layout is sound."""
+    counts = [_chunk_count(p) for p in parts]
+    if any(c is None for c in counts):
+        return None  # compression with an unknown chunk height: leave it to the decoder
+    total = sum(counts)  # type: ignore[arg-type]
+    if total > 1 << 24:
+        x0, y0, x1, y1 = parts[0].window
+        raise _Bad(f"implausible chunk count {total} (data window {x1 - x0 + 1}x{y1 - y0 + 1})")
+    if any(c < 1 for c in counts):  # type: ignore[operator]
+        raise _Bad(f"invalid chunk count {min(counts)}")  # type: ignore[type-var]
+    table_end = table_at + 8 * total
+    if table_end > size:
+        return f"truncated: file ends at byte {size}, inside the chunk table (needs {table_end} bytes)"
+    f.seek(table_at)
+    offsets = np.frombuffer(f.read(8 * total), dtype="<u8")
+    if (offsets == 0).any():
+        return f"incomplete: {int((offsets == 0).sum())} of {total} chunks were never written"
+    if (offsets < table_end).any():
+        return "corrupt chunk table: offsets point into the header"
+    if (offsets >= size).any():
+        bad = int((offsets >= size).sum())
+        return f"truncated: {bad} of {total} chunks start past the end of the file ({size} bytes)"
+    last = int(offsets.max())
+    f.seek(last)
+    prefix = (4 if multipart else 0) + (16 if parts[0].tiles is not None else 4)
+    head = f.read(prefix + 4)
+    if len(head) < prefix + 4:
+        return f"truncated: last chunk at byte {last} has no complete header ({size} bytes)"
+    (data_size,) = struct.unpack_from("<i", head, prefix)
+    if data_size <= 0:
+        return f"corrupt chunk table: the chunk at byte {last} declares {data_size} bytes"
+    if last + prefix + 4 + data_size > size:
+        return f"truncated: last chunk at byte {last} needs {data_size} bytes, file ends at {size}"
+    return None
+
+
+def _plain_attributes(attrs: dict[str, tuple[str, bytes]]) -> dict[str, Any]:
+    """Header attributes of simple types (string, int, float, double) as Python values."""
+    out: dict[str, Any] = {}
+    for name, (kind, value) in attrs.items():
+        if kind == "string":
+            out[name] = value.decode("utf-8", "replace")
+        elif kind == "int" and len(value) == 4:
+            out[name] = struct.unpack("<i", value)[0]
+        elif kind == "float" and len(value) == 4:
+            out[name] = struct.unpack("<f", value)[0]
+        elif kind == "double" and len(value) == 8:
+            out[name] = struct.unpack("<d", value)[0]
+    return out
+
+
+def check_exr_header(
+    header: FrameHeader, expected_size: tuple[int, int] | None = None, channels: str = "RGB"
+) -> None:
+    """Refuse, before decoding, what read_exr cannot return safely: truncation, a data window that is not
+    the expected size or too large, missing / subsampled / integer channels, or too many bytes to decode."""
+    if header.chunk_problem:
+        raise LightstageError(f"{header.path}: {header.chunk_problem}")
+    _check_size(header, expected_size)
+    if header.decode_bytes > MAX_DECODE_BYTES:
+        raise LightstageError(
+            f"{header.path}: decoding would need {header.decode_bytes / 2**30:.1f} GiB "
+            f"(limit {MAX_DECODE_BYTES / 2**30:.0f} GiB)"
+        )
+    missing = [c for c in channels if c not in header.channels]
+    if missing:
+        raise LightstageError(
+            f"{header.path}: missing channel(s) {', '.join(missing)} (has {', '.join(sorted(header.channels))})"
+        )
+    sub = [c for c in channels if c in header.subsampled]
+    if sub:
+        raise LightstageError(f"{header.path}: subsampled channel(s) {', '.join(sub)} are not supported")
+    kinds = {header.channels[c] for c in channels}
+    if len(kinds) != 1 or not kinds <= {"half", "float"}:
+        raise LightstageError(
+            f"{header.path}: channels {', '.join(channels)} must all be half or all float, "
+            f"got {', '.join(header.channels[c] for c in channels)}"
+        )
+
+
+def _set_exr_limits() -> None:
+    """OpenEXR's own size guards (a second line of defence behind check_exr_header)."""
+    import OpenEXR
+
+    if OpenEXR.getMaxImageSize() != (MAX_SIDE, MAX_SIDE):
+        OpenEXR.setMaxImageSize(MAX_SIDE, MAX_SIDE)
+        OpenEXR.setMaxTileSize(MAX_SIDE, MAX_SIDE)
 
 
 def read_exr(
@@ -86,16 +418,13 @@ def read_exr(
     """Decode an EXR into an (H, W, len(channels)) array of its stored dtype (float16 or float32).
 
     `expected_size` = (width, height): a mismatch is an error before decoding. Missing channels are an error.
+    The header is parsed and checked (check_exr_header) before OpenEXR sees the pixels.
     """
     import OpenEXR
 
     header = read_exr_header(path)
-    _check_size(header, expected_size)
-    missing = [c for c in channels if c not in header.channels]
-    if missing:
-        raise LightstageError(
-            f"{header.path}: missing channel(s) {', '.join(missing)} (has {', '.join(sorted(header.channels))})"
-        )
+    check_exr_header(header, expected_size, channels)
+    _set_exr_limits()
     try:
         f = OpenEXR.File(str(header.path), separate_channels=True)
         planes = f.parts[0].channels
@@ -107,12 +436,49 @@ def read_exr(
         raise LightstageError(
             f"{header.path}: channels must all be half or all float, got {sorted(map(str, dtypes))}"
         )
-    out = np.stack(arrays, axis=-1)
-    if out.shape[:2] != (header.height, header.width):
+    if any(a.shape != (header.height, header.width) for a in arrays):
         raise LightstageError(
-            f"{header.path}: decoded {out.shape[1]}x{out.shape[0]}, header says {header.width}x{header.height}"
+            f"{header.path}: decoded {arrays[0].shape[1]}x{arrays[0].shape[0]}, "
+            f"header says {header.width}x{header.height}"
         )
-    return out
+    return np.stack(arrays, axis=-1)
+
+
+@dataclass(frozen=True)
+class PixelCheck:
+    """Result of check_pixels: status 'ok' | 'non_finite' | 'negative', a message and the counts."""
+
+    status: str
+    message: str
+    non_finite: int = 0
+    negative: int = 0
+    saturated_fraction: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+
+def check_pixels(pixels: np.ndarray, saturation: float | None = None, rows_per_band: int = 256) -> PixelCheck:
+    """Count non-finite and negative samples (and, given the stage's cutoff, the saturated fraction) of an
+    (H, W, C) image, in row bands so a full-resolution frame needs no full-size temporaries."""
+    non_finite = negative = saturated = 0
+    for r in range(0, pixels.shape[0], rows_per_band):
+        band = np.asarray(pixels[r : r + rows_per_band], dtype=np.float32)
+        finite = np.isfinite(band)
+        non_finite += int(band.size - np.count_nonzero(finite))
+        negative += int(np.count_nonzero(band < 0))
+        if saturation is not None:
+            saturated += int(
+                np.count_nonzero((band >= saturation).any(axis=-1) if band.ndim == 3 else band >= saturation)
+            )
+    npx = pixels.shape[0] * pixels.shape[1]
+    frac = saturated / npx if npx else 0.0
+    if non_finite:
+        return PixelCheck("non_finite", f"{non_finite} NaN/Inf samples", non_finite, negative, frac)
+    if negative:
+        return PixelCheck("negative", f"{negative} negative samples", non_finite, negative, frac)
+    return PixelCheck("ok", "", 0, 0, frac)
 
 
 def write_exr(
