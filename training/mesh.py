@@ -98,8 +98,8 @@ def density_grid(
 def extract_mesh(
     grid: np.ndarray, threshold: float, centre: np.ndarray, scale: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Marching cubes of a density grid over centre +- scale: (vertices (V, 3) world units, faces (F, 3),
-    outward normals (V, 3))."""
+    """Marching cubes of a density grid over centre +- scale: (vertices (V, 3) world units, faces (F, 3)
+    counter-clockwise seen from outside, outward normals (V, 3))."""
     from skimage.measure import marching_cubes
 
     grid = np.nan_to_num(np.asarray(grid, np.float32), nan=0.0, posinf=np.float32(3e38))
@@ -115,7 +115,9 @@ def extract_mesh(
         grid, level=threshold, spacing=tuple(spacing), gradient_direction="descent"
     )
     verts = verts + (np.asarray(centre, np.float64) - np.asarray(scale, np.float64))
-    return verts.astype(np.float64), faces.astype(np.int32), normals.astype(np.float32)
+    # scikit-image winds triangles clockwise seen from outside here; flip to counter-clockwise (front faces out)
+    faces = faces[:, [0, 2, 1]]
+    return verts.astype(np.float64), np.ascontiguousarray(faces, dtype=np.int32), normals.astype(np.float32)
 
 
 def write_ply(
