@@ -518,14 +518,15 @@ def write_exr(
 def read_image(path: str | os.PathLike[str], expected_size: tuple[int, int] | None = None) -> np.ndarray:
     """Read any supported image as float32 (H, W, C): EXR through OpenEXR, others through OpenImageIO."""
     path = Path(path)
-    if path.suffix.lower() == ".exr":
+    if path.suffix.lower() == ".exr" or _has_exr_magic(path):
         return read_exr(path, expected_size).astype(np.float32)
     import OpenImageIO as oiio
 
     _check_file(path)
+    oiio.attribute("limits:imagesize_MB", MAX_DECODE_BYTES >> 20)  # OIIO's own guard, behind ours
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        raise LightstageError(f"{path}: cannot open image ({oiio.geterror() or 'unknown format'})")
+        raise LightstageError(f"{path}: cannot open image ({_oiio_error(oiio.geterror) or 'unknown format'})")
     try:
         spec = inp.spec()
         if spec.width * spec.height > MAX_PIXELS:
@@ -536,7 +537,7 @@ def read_image(path: str | os.PathLike[str], expected_size: tuple[int, int] | No
             )
         data = inp.read_image(0, 0, 0, spec.nchannels, "float")
         if data is None:
-            raise LightstageError(f"{path}: cannot decode image ({inp.geterror()})")
+            raise LightstageError(f"{path}: cannot decode image ({_oiio_error(inp.geterror)})")
     finally:
         inp.close()
     return np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
@@ -554,11 +555,28 @@ def write_image(path: str | os.PathLike[str], pixels: np.ndarray) -> None:
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(path))
         if out is None or not out.open(str(tmp), spec):
-            raise LightstageError(f"{path}: cannot write image ({oiio.geterror()})")
+            raise LightstageError(f"{path}: cannot write image ({_oiio_error(oiio.geterror)})")
         ok = out.write_image(pixels)
         out.close()
         if not ok:
-            raise LightstageError(f"{path}: cannot write image ({out.geterror()})")
+            raise LightstageError(f"{path}: cannot write image ({_oiio_error(out.geterror)})")
+
+
+def _has_exr_magic(path: Path) -> bool:
+    """True when the file starts with the EXR magic number (EXR content under another name)."""
+    try:
+        with path.open("rb") as f:
+            return f.read(4) == EXR_MAGIC
+    except OSError:
+        return False
+
+
+def _oiio_error(getter: Any) -> str:
+    """First line of an OpenImageIO error; its bindings raise on messages that are not valid UTF-8."""
+    try:
+        return _first_line(getter())
+    except UnicodeDecodeError:
+        return "error message is not valid UTF-8"
 
 
 def _check_file(path: Path) -> None:
