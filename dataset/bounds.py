@@ -1,0 +1,270 @@
+"""Scene bounds from the per-view masks and calibrated cameras: a conservative visual hull (space carving)
+on a voxel grid, coarse then fine, giving the box and the normalisation x_norm = (x_world - centre) / scale
+that maps it inside the model's unit cube [-1, 1]^3 with a margin. No per-object tables."""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lightstage.atomic import write_json_atomic
+from lightstage.capture.layout import ViewId
+from lightstage.errors import LightstageError
+from lightstage.workdir import WorkDir
+
+BOUNDS_FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class BoundsConfig:
+    """Voxels per axis per pass, passes (each refines the previous box), the consistency a voxel needs (fraction
+    of the views that see it whose mask covers it), the least views that must see it, and the box margin."""
+
+    resolution: int = 64
+    passes: int = 2
+    consistency: float = 0.9
+    min_views: int = 2
+    margin: float = 0.1
+    force: bool = False
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> BoundsConfig:
+        known = {f.name: f for f in fields(cls)}
+        out = {}
+        for k, v in d.items():
+            if k not in known:
+                raise LightstageError(f"bounds config: unknown key {k!r} (known: {', '.join(known)})")
+            want = type(getattr(cls(), k))
+            if want is float and isinstance(v, int) and not isinstance(v, bool):
+                v = float(v)
+            if not isinstance(v, want) or (want is not bool and isinstance(v, bool)):
+                raise LightstageError(f"bounds config: {k}: expected {want.__name__}, got {v!r}")
+            out[k] = v
+        cfg = cls(**out)
+        if (
+            cfg.resolution < 8
+            or cfg.passes < 1
+            or not 0 < cfg.consistency <= 1
+            or cfg.min_views < 1
+            or cfg.margin < 0
+        ):
+            raise LightstageError(f"bounds config: out of range: {cfg}")
+        return cfg
+
+
+@dataclass(frozen=True)
+class Bounds:
+    """The object's axis-aligned box (world, metres) and the unit-cube normalisation."""
+
+    box_min: np.ndarray
+    box_max: np.ndarray
+    centre: np.ndarray
+    scale: float
+
+    def normalize(self, x: np.ndarray) -> np.ndarray:
+        return (np.asarray(x) - self.centre) / self.scale
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "format_version": BOUNDS_FORMAT_VERSION,
+            "centre": [float(x) for x in self.centre],
+            "scale": float(self.scale),
+            "box_min": [float(x) for x in self.box_min],
+            "box_max": [float(x) for x in self.box_max],
+            "convention": "x_norm = (x_world - centre) / scale; the box lies inside [-1, 1]^3 with the margin",
+        }
+
+
+def load_bounds(path: str | Path) -> Bounds:
+    """Read bounds.json."""
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text())
+        return Bounds(
+            np.array(d["box_min"]), np.array(d["box_max"]), np.array(d["centre"]), float(d["scale"])
+        )
+    except OSError as e:
+        raise LightstageError(f"{path}: cannot read bounds ({e.strerror}); run `lightstage bounds`") from None
+    except (KeyError, TypeError, ValueError) as e:
+        raise LightstageError(f"{path}: malformed bounds ({type(e).__name__}: {e})") from None
+
+
+def read_label_png(path: Path) -> np.ndarray:
+    """A single-channel 8-bit PNG (mask or zone map) as uint8 (H, W), exact values (OpenCV, no rescaling)."""
+    import cv2
+
+    if not path.is_file():
+        raise LightstageError(f"{path}: missing (run `lightstage preprocess`)")
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise LightstageError(f"{path}: unreadable PNG")
+    if img.ndim == 3:
+        img = img[..., 0]
+    if img.dtype != np.uint8:
+        img = np.clip(img, 0, 255).astype(np.uint8)
+    return img
+
+
+def read_mask(path: Path) -> np.ndarray:
+    """Foreground mask as bool: 0/1 or 0/255 PNGs are both accepted."""
+    m = read_label_png(path)
+    return m > (127 if m.max() > 1 else 0)
+
+
+@dataclass
+class _View:
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    dist_to_fg: np.ndarray  # distance (px) from each pixel to the nearest mask pixel
+
+
+def carve(views: list[_View], lo: np.ndarray, hi: np.ndarray, cfg: BoundsConfig) -> np.ndarray:
+    """Boolean occupancy (n, n, n) of voxel centres in [lo, hi]: kept when, in at least `consistency` of the
+    views that see it, its projected footprint (a disc of the voxel's half-diagonal) touches the mask."""
+    n = cfg.resolution
+    step = (hi - lo) / n
+    axes = [lo[i] + (np.arange(n) + 0.5) * step[i] for i in range(3)]
+    X = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    radius = 0.5 * float(np.linalg.norm(step))
+    seen = np.zeros(len(X), np.int32)
+    hits = np.zeros(len(X), np.int32)
+    for v in views:
+        xc = X @ v.R.T + v.t
+        z = xc[:, 2]
+        front = z > 1e-6
+        uv = (xc[:, :2] / np.where(front, z, 1.0)[:, None]) * np.diag(v.K)[:2] + v.K[:2, 2]
+        h, w = v.dist_to_fg.shape
+        inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        idx = np.flatnonzero(inside)
+        d = v.dist_to_fg[uv[idx, 1].astype(int), uv[idx, 0].astype(int)]
+        r_px = v.K[0, 0] * radius / z[idx] + 0.75
+        seen[idx] += 1
+        hits[idx] += d <= r_px
+    keep = (seen >= cfg.min_views) & (hits >= np.ceil(cfg.consistency * seen - 1e-9))
+    return keep.reshape(n, n, n)
+
+
+def estimate_bounds(views: list[_View], cfg: BoundsConfig) -> tuple[Bounds, dict[str, Any]]:
+    """Coarse-to-fine carving from a cube around the point nearest to all optical axes."""
+    centres = np.stack([-v.R.T @ v.t for v in views])
+    axes = np.stack([v.R[2] for v in views])
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for c, a in zip(centres, axes, strict=True):
+        P = np.eye(3) - np.outer(a, a)
+        A += P
+        b += P @ c
+    c0 = np.linalg.lstsq(A, b, rcond=None)[0]
+    half = 0.5 * float(np.min(np.linalg.norm(centres - c0, axis=1)))
+    lo, hi = c0 - half, c0 + half
+    info: dict[str, Any] = {"initial_box": [lo.tolist(), hi.tolist()], "passes": []}
+    for p in range(cfg.passes):
+        occ = carve(views, lo, hi, cfg)
+        if not occ.any():
+            raise LightstageError(
+                "visual hull is empty: the masks and the calibrated cameras do not agree on any region "
+                f"(pass {p + 1}, box {np.round(lo, 3).tolist()}..{np.round(hi, 3).tolist()})"
+            )
+        step = (hi - lo) / cfg.resolution
+        idx = np.argwhere(occ)
+        new_lo = lo + idx.min(0) * step
+        new_hi = lo + (idx.max(0) + 1) * step
+        info["passes"].append(
+            {
+                "box": [new_lo.tolist(), new_hi.tolist()],
+                "voxel_size": step.tolist(),
+                "occupied": int(occ.sum()),
+            }
+        )
+        if p + 1 < cfg.passes:  # refine on the box grown by one voxel (the carving is conservative)
+            lo, hi = new_lo - step, new_hi + step
+        else:
+            lo, hi = new_lo, new_hi
+    centre = 0.5 * (lo + hi)
+    scale = float(np.max(0.5 * (hi - lo))) * (1.0 + cfg.margin)
+    return Bounds(lo, hi, centre, scale), info
+
+
+def _training_views(work: WorkDir, calib_views: list[ViewId]) -> list[ViewId]:
+    if work.split.is_file():
+        from lightstage.dataset.split import load_split
+
+        wanted = set(load_split(work.split).train.views())
+        return [v for v in calib_views if v in wanted]
+    return calib_views
+
+
+def run_bounds(
+    work: WorkDir, config: BoundsConfig, client: Any = None, progress: bool = True
+) -> dict[str, Any]:
+    """Carve the visual hull of the training views' masks; write WORK/bounds.json and reports/bounds.json."""
+    import cv2
+
+    from lightstage.calibration.record import Calibration
+
+    t0 = time.perf_counter()
+    if work.bounds.is_file() and not config.force:
+        b = load_bounds(work.bounds)
+        d = json.loads(work.bounds.read_text())
+        return {
+            "stage": "bounds",
+            "skipped": True,
+            "centre": b.centre.tolist(),
+            "scale": b.scale,
+            "views": d.get("views", 0),
+            "occupied_voxels": d.get("occupied_voxels", 0),
+            "output": str(work.bounds),
+        }
+    calib = Calibration.load(work.calibration)
+    names = _training_views(work, sorted(calib.views))
+    views = []
+    missing = []
+    for v in names:
+        path = work.mask(v)
+        if not path.is_file():
+            missing.append(str(v))
+            continue
+        cam = calib.views[v].camera()
+        mask = read_mask(path)
+        if mask.shape != (cam.height, cam.width):
+            raise LightstageError(
+                f"{path}: mask is {mask.shape[1]}x{mask.shape[0]}, camera is {cam.width}x{cam.height}"
+            )
+        dist = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, 5)
+        views.append(_View(cam.K, cam.R, cam.t, dist))
+    if len(views) < config.min_views:
+        raise LightstageError(
+            f"{work.root}: only {len(views)} view masks found ({len(missing)} missing, e.g. "
+            f"{missing[:2]}); run `lightstage preprocess` first"
+        )
+    bounds, info = estimate_bounds(views, config)
+    record = bounds.to_dict() | {
+        "method": "visual hull (conservative space carving)",
+        "views": len(views),
+        "occupied_voxels": info["passes"][-1]["occupied"],
+        "margin": config.margin,
+        "carving": info,
+        "config": asdict(config),
+    }
+    write_json_atomic(work.bounds, record)
+    summary = {
+        "stage": "bounds",
+        "skipped": False,
+        "centre": bounds.centre.tolist(),
+        "scale": bounds.scale,
+        "views": len(views),
+        "missing_masks": len(missing),
+        "occupied_voxels": record["occupied_voxels"],
+        "output": str(work.bounds),
+        "seconds": round(time.perf_counter() - t0, 3),
+        "warnings": [f"{len(missing)} view masks missing"] if missing else [],
+        "errors": [],
+    }
+    write_json_atomic(work.report("bounds"), summary)
+    return summary

@@ -1,0 +1,689 @@
+"""Training ray shards: rays sampled by zone from the training images, shuffled across images into fixed-size,
+memory-mappable shards (one .npy of RAY_DTYPE each, blocks foreground | band | background) with a manifest
+(format version, dtype, counts per zone, sha256 per shard, normalisation); test frames as full images.
+
+Two phases, both parallel (dask with a client, else a local process pool): per training view, sample and
+compute every frame's rays into a temporary chunk (zone blocks, shuffled); per shard, gather an evenly spread,
+interleaved share of every chunk's zone blocks and shuffle it. Memory per task is one chunk or one shard.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lightstage.atomic import atomic_path, write_json_atomic
+from lightstage.capture.layout import FrameId, ViewId
+from lightstage.errors import LightstageError
+from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND, WorkDir
+
+SHARD_FORMAT_VERSION = 1
+# One ray, 64 bytes, packed. pixel = integer pixel (column i, row j) of the processed image, outside it for
+# border rays; view / light index the manifest's `views` list and the 0-based light.
+RAY_DTYPE = np.dtype(
+    [
+        ("origin", "<f4", (3,)),
+        ("direction", "<f4", (3,)),
+        ("light_position", "<f4", (3,)),
+        ("light_direction", "<f4", (3,)),
+        ("rgb", "<f2", (3,)),
+        ("saturated", "u1"),
+        ("zone", "u1"),
+        ("view", "<u2"),
+        ("light", "<u2"),
+        ("pixel", "<i2", (2,)),
+    ]
+)
+# Block order inside chunks and shards, and the batch composition of the paper (1/2, 3/8, 1/8).
+ZONES = (ZONE_FOREGROUND, ZONE_BAND, ZONE_BACKGROUND)
+ZONE_NAMES = {ZONE_FOREGROUND: "foreground", ZONE_BAND: "band", ZONE_BACKGROUND: "background"}
+COMPOSITION = (4, 3, 1)  # eighths
+MANIFEST = "manifest.json"
+
+
+@dataclass(frozen=True)
+class ShardConfig:
+    """Rays per training image (split 4:3:1 fg/band/bg), rays per shard, the padded border (pad the short image
+    side to a square, plus `border_px` all round; those rays have target 0), background target ('zero' as the
+    paper: every pixel outside the mask has target 0; 'pixel': keep values), seed, local processes."""
+
+    rays_per_image: int = 8192
+    rays_per_shard: int = 1 << 20
+    pad_to_square: bool = True
+    border_px: int = 16
+    background_target: str = "zero"
+    seed: int = 0
+    workers: int = 0  # 0: min(cpu count, 4); 1: in this process
+    compress_test: bool = True
+    force: bool = False
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ShardConfig:
+        known = {f.name for f in fields(cls)}
+        out = {}
+        for k, v in d.items():
+            if k not in known:
+                raise LightstageError(f"shard config: unknown key {k!r} (known: {', '.join(sorted(known))})")
+            want = type(getattr(cls(), k))
+            if not isinstance(v, want) or (want is not bool and isinstance(v, bool)):
+                raise LightstageError(f"shard config: {k}: expected {want.__name__}, got {v!r}")
+            out[k] = v
+        cfg = cls(**out)
+        for k in ("rays_per_image", "rays_per_shard"):
+            v = getattr(cfg, k)
+            if v < 8 or v % 8:
+                raise LightstageError(f"shard config: {k}: must be a positive multiple of 8, got {v}")
+        if cfg.background_target not in ("zero", "pixel"):
+            raise LightstageError(
+                f"shard config: background_target: 'zero' or 'pixel', got {cfg.background_target!r}"
+            )
+        if cfg.border_px < 0 or cfg.workers < 0:
+            raise LightstageError("shard config: border_px and workers must be >= 0")
+        return cfg
+
+
+# ---- geometry --------------------------------------------------------------------------------------
+def view_rays(
+    K: np.ndarray, R: np.ndarray, t: np.ndarray, dist: np.ndarray, pixels: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """float32 world (origins, directions) through the centres of integer pixels (N, 2) = (i, j) of a
+    processed-resolution camera; distorted cameras are undistorted first (OpenCV)."""
+    from lightstage.cameras import pixel_rays
+
+    uv = pixels.astype(np.float64) + 0.5
+    if np.any(np.asarray(dist) != 0):
+        import cv2
+
+        uv = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, np.asarray(dist, np.float64), P=K).reshape(-1, 2)
+    o, d = pixel_rays(uv, K, R, t)
+    return o.astype(np.float32), d.astype(np.float32)
+
+
+def border_geometry(width: int, height: int, cfg: ShardConfig) -> tuple[int, int]:
+    """(pad_x, pad_y): padding in pixels on each side of the image for the background border."""
+    px = py = cfg.border_px
+    if cfg.pad_to_square:
+        if width > height:
+            py += (width - height + 1) // 2
+        else:
+            px += (height - width + 1) // 2
+    return px, py
+
+
+def border_pixels(index: np.ndarray, width: int, height: int, pad: tuple[int, int]) -> np.ndarray:
+    """Integer pixels (N, 2) of the padded ring outside the image, from indices in [0, ring size)."""
+    px, py = pad
+    W = width + 2 * px
+    top = py * W  # rows -py..-1 (all columns), then rows H..H+py-1, then side columns of the image rows
+    side = 2 * px * height
+    out = np.empty((len(index), 2), np.int64)
+    a = index < top
+    out[a, 0] = index[a] % W - px
+    out[a, 1] = index[a] // W - py
+    b = (index >= top) & (index < 2 * top)
+    k = index[b] - top
+    out[b, 0] = k % W - px
+    out[b, 1] = height + k // W
+    c = index >= 2 * top
+    k = index[c] - 2 * top
+    row, col = k // (2 * px), k % (2 * px)
+    out[c, 0] = np.where(col < px, col - px, width + col - px)
+    out[c, 1] = row
+    assert side >= 0
+    return out
+
+
+def ring_size(width: int, height: int, pad: tuple[int, int]) -> int:
+    px, py = pad
+    return 2 * py * (width + 2 * px) + 2 * px * height
+
+
+def read_zones(path: Path) -> np.ndarray:
+    """A zone map PNG as labels ZONE_BACKGROUND / ZONE_BAND / ZONE_FOREGROUND (raw labels or 0/128/255)."""
+    from lightstage.dataset.bounds import read_label_png
+
+    z = read_label_png(path)
+    if z.max() <= 2:
+        return z
+    return np.where(z < 64, ZONE_BACKGROUND, np.where(z < 192, ZONE_BAND, ZONE_FOREGROUND)).astype(np.uint8)
+
+
+def read_frame(path: Path, size: tuple[int, int]) -> np.ndarray:
+    """A processed frame (H, W, 4) float16: R, G, B and S (1 = saturated)."""
+    from lightstage.capture.frames import read_exr
+
+    return read_exr(path, expected_size=size, channels="RGBS")
+
+
+# ---- phase A: one training view -> one chunk ---------------------------------------------------------
+@dataclass(frozen=True)
+class ViewTask:
+    """Everything a worker needs to write one view's chunk (small, picklable)."""
+
+    work: str
+    index: int  # position in the manifest's views list
+    group: str
+    camera: str
+    lights: tuple[int, ...]
+    K: tuple
+    R: tuple
+    t: tuple
+    dist: tuple
+    width: int
+    height: int
+    light_positions: tuple  # (len(lights), 3)
+    light_directions: tuple
+    config: dict
+    chunk: str
+
+
+def quotas(total: int) -> tuple[int, int, int]:
+    """Per-zone counts (fg, band, bg) of `total` (a multiple of 8) in the paper's 4:3:1."""
+    return tuple(total // 8 * c for c in COMPOSITION)  # type: ignore[return-value]
+
+
+def write_view_chunk(task: ViewTask) -> dict[str, Any]:
+    """Sample every training frame of a view by zone, compute its rays, write the view's chunk (.npy)."""
+    from lightstage.threads import set_library_threads
+
+    set_library_threads(1)
+    chunk = Path(task.chunk)
+    meta_path = chunk.with_suffix(".json")
+    if chunk.is_file() and meta_path.is_file():
+        meta = json.loads(meta_path.read_text())
+        if meta.get("task_hash") == _task_hash(task):
+            return meta
+    cfg = ShardConfig(**task.config)
+    work = WorkDir.at(task.work)
+    view = ViewId(task.group, task.camera)
+    K, R, t, dist = (np.array(x, np.float64) for x in (task.K, task.R, task.t, task.dist))
+    W, H = task.width, task.height
+    zones = read_zones(work.zones(view))
+    if zones.shape != (H, W):
+        raise LightstageError(
+            f"{work.zones(view)}: zone map is {zones.shape[1]}x{zones.shape[0]}, camera is {W}x{H}"
+        )
+    mask_path = work.mask(view)
+    if mask_path.is_file():
+        from lightstage.dataset.bounds import read_mask
+
+        keep_value = read_mask(mask_path)
+    else:
+        keep_value = zones == ZONE_FOREGROUND
+    if cfg.background_target == "pixel":
+        keep_value = np.ones_like(keep_value)
+    pools = {z: np.flatnonzero(zones.ravel() == z) for z in (ZONE_FOREGROUND, ZONE_BAND)}
+    bg_img = np.flatnonzero(zones.ravel() == ZONE_BACKGROUND)
+    pad = border_geometry(W, H, cfg)
+    n_ring = ring_size(W, H, pad)
+    q = dict(zip(ZONES, quotas(cfg.rays_per_image), strict=True))
+    blocks: dict[int, list[np.ndarray]] = {z: [] for z in ZONES}
+    stats = {"duplicated": 0, "missing": {ZONE_NAMES[z]: 0 for z in ZONES}}
+    lp = np.array(task.light_positions, np.float32).reshape(-1, 3)
+    ld = np.array(task.light_directions, np.float32).reshape(-1, 3)
+    for k, light in enumerate(task.lights):
+        frame = FrameId(task.group, task.camera, light)
+        img = read_frame(work.frame(frame), (W, H))
+        rng = np.random.default_rng([cfg.seed, task.index, light])
+        for z in ZONES:
+            if z == ZONE_BACKGROUND:
+                n_pool = bg_img.size + n_ring
+                sel = rng.choice(n_pool, size=q[z], replace=n_pool < q[z])
+                in_img = sel < bg_img.size
+                pix = np.empty((q[z], 2), np.int64)
+                flat = bg_img[sel[in_img]]
+                pix[in_img, 0], pix[in_img, 1] = flat % W, flat // W
+                pix[~in_img] = border_pixels(sel[~in_img] - bg_img.size, W, H, pad)
+            else:
+                pool = pools[z]
+                if pool.size == 0:
+                    stats["missing"][ZONE_NAMES[z]] += q[z]
+                    continue
+                replace = pool.size < q[z]
+                stats["duplicated"] += max(0, q[z] - pool.size) if replace else 0
+                flat = pool[rng.choice(pool.size, size=q[z], replace=replace)]
+                pix = np.stack([flat % W, flat // W], axis=1)
+            rec = np.zeros(len(pix), RAY_DTYPE)
+            rec["origin"], rec["direction"] = view_rays(K, R, t, dist, pix)
+            rec["light_position"] = lp[k]
+            rec["light_direction"] = ld[k]
+            inside = (pix[:, 0] >= 0) & (pix[:, 0] < W) & (pix[:, 1] >= 0) & (pix[:, 1] < H)
+            ii, jj = pix[inside, 0], pix[inside, 1]
+            vals = img[jj, ii]
+            keep = keep_value[jj, ii]
+            rgb = np.zeros((len(pix), 3), np.float16)
+            rgb[inside] = np.where(keep[:, None], vals[:, :3], 0)
+            sat = np.zeros(len(pix), np.uint8)
+            sat[inside] = (vals[:, 3] > 0.5) & keep
+            rec["rgb"], rec["saturated"], rec["zone"] = rgb, sat, z
+            rec["view"], rec["light"], rec["pixel"] = task.index, light, pix
+            blocks[z].append(rec)
+    rng = np.random.default_rng([cfg.seed, task.index, 1 << 20])
+    parts, counts = [], []
+    for z in ZONES:
+        b = np.concatenate(blocks[z]) if blocks[z] else np.zeros(0, RAY_DTYPE)
+        parts.append(b[rng.permutation(len(b))])
+        counts.append(len(b))
+    with atomic_path(chunk) as tmp:
+        np.save(tmp, np.concatenate(parts))
+    meta = {"view": task.index, "counts": counts, "task_hash": _task_hash(task)} | stats
+    write_json_atomic(meta_path, meta)
+    return meta
+
+
+def _task_hash(task: Any) -> str:
+    d = asdict(task)
+    d.pop("chunk", None)
+    d.pop("work", None)
+    return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+# ---- phase B: gather one shard -------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ShardTask:
+    """One shard: which positions of which chunk zone blocks it gathers (given by the global plan)."""
+
+    index: int
+    num_shards: int
+    per_zone: tuple[int, int, int]  # rays of each zone block in this shard
+    kept: tuple[int, int, int]  # T_z = num_shards * per_zone[z]
+    totals: tuple[int, int, int]  # N_z: rays of zone z over all chunks
+    chunks: tuple[str, ...]
+    chunk_counts: tuple[tuple[int, int, int], ...]
+    path: str
+    seed: int
+
+
+def shard_positions(k_lo: int, k_hi: int, s: int, S: int, N: int, T: int) -> np.ndarray:
+    """Global pool positions floor(k N / T) of the kept rays k in [k_lo, k_hi) that go to shard s (k = s mod S)."""
+    first = k_lo + ((s - k_lo) % S)
+    k = np.arange(first, k_hi, S, dtype=np.int64)
+    return (k * N) // T
+
+
+def write_shard(task: ShardTask) -> dict[str, Any]:
+    """Gather, shuffle and write one shard; return its record (file, rays, zone counts, sha256, bytes)."""
+    path = Path(task.path)
+    size = sum(task.per_zone)
+    if path.is_file() and path.stat().st_size == _npy_size(size):
+        sha = file_sha256(path)
+        return _shard_record(task, path, sha)
+    rng = np.random.default_rng([task.seed, task.index, 7])
+    out = []
+    offsets = np.zeros(len(ZONES), np.int64)  # start of each chunk's zone block in the global pool
+    gathered: list[list[np.ndarray]] = [[] for _ in ZONES]
+    for chunk, counts in zip(task.chunks, task.chunk_counts, strict=True):
+        data = np.load(chunk, mmap_mode="r")
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        for zi in range(len(ZONES)):
+            N, T = task.totals[zi], task.kept[zi]
+            a, n = int(offsets[zi]), counts[zi]
+            if n and T:
+                k_lo = -(-a * T // N)
+                k_hi = -(-(a + n) * T // N)
+                pos = shard_positions(k_lo, k_hi, task.index, task.num_shards, N, T) - a
+                if pos.size:
+                    gathered[zi].append(np.asarray(data[starts[zi] + pos]))
+            offsets[zi] += n
+        del data
+    for zi in range(len(ZONES)):
+        b = np.concatenate(gathered[zi]) if gathered[zi] else np.zeros(0, RAY_DTYPE)
+        if len(b) != task.per_zone[zi]:
+            raise LightstageError(
+                f"{path}: planned {task.per_zone[zi]} {ZONE_NAMES[ZONES[zi]]} rays, gathered {len(b)}"
+            )
+        out.append(b[rng.permutation(len(b))])
+    with atomic_path(path) as tmp:
+        np.save(tmp, np.concatenate(out))
+    return _shard_record(task, path, file_sha256(path))
+
+
+def _shard_record(task: ShardTask, path: Path, sha: str) -> dict[str, Any]:
+    return {
+        "file": f"train/{path.name}",
+        "rays": int(sum(task.per_zone)),
+        "zones": {ZONE_NAMES[z]: int(n) for z, n in zip(ZONES, task.per_zone, strict=True)},
+        "sha256": sha,
+        "bytes": path.stat().st_size,
+    }
+
+
+def _npy_size(rays: int) -> int:
+    import io
+
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        buf, np.lib.format.header_data_from_array_1_0(np.zeros(rays, RAY_DTYPE))
+    )
+    return buf.tell() + rays * RAY_DTYPE.itemsize
+
+
+def file_sha256(path: Path, block: int = 8 << 20) -> str:
+    """sha256 of a file, read in blocks (bounded memory)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(block):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+# ---- test images -----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class TestTask:
+    """One test frame to store as a full image with its camera and light."""
+
+    work: str
+    group: str
+    camera: str
+    light: int
+    K: tuple
+    R: tuple
+    t: tuple
+    dist: tuple
+    width: int
+    height: int
+    light_position: tuple
+    light_direction: tuple
+    path: str
+    compress: bool
+
+
+def write_test_image(task: TestTask) -> dict[str, Any]:
+    """shards/test/<g>_<c>_<lll>.npz: rgb (H, W, 3) f16, saturated, mask, zones, K, R, t, dist, light."""
+    from lightstage.threads import set_library_threads
+
+    set_library_threads(1)
+    path = Path(task.path)
+    name = path.name
+    if not path.is_file():
+        work = WorkDir.at(task.work)
+        view = ViewId(task.group, task.camera)
+        img = read_frame(work.frame(FrameId(task.group, task.camera, task.light)), (task.width, task.height))
+        zones_p, mask_p = work.zones(view), work.mask(view)
+        zones = read_zones(zones_p) if zones_p.is_file() else np.zeros((task.height, task.width), np.uint8)
+        if mask_p.is_file():
+            from lightstage.dataset.bounds import read_mask
+
+            mask = read_mask(mask_p)
+        else:
+            mask = zones == ZONE_FOREGROUND
+        arrays = {
+            "rgb": np.ascontiguousarray(img[..., :3]),
+            "saturated": img[..., 3] > 0.5,
+            "mask": mask,
+            "zones": zones,
+            "K": np.array(task.K),
+            "R": np.array(task.R),
+            "t": np.array(task.t),
+            "dist": np.array(task.dist),
+            "width": np.int64(task.width),
+            "height": np.int64(task.height),
+            "light_position": np.array(task.light_position),
+            "light_direction": np.array(task.light_direction),
+            "group": np.str_(task.group),
+            "camera": np.str_(task.camera),
+            "light": np.int64(task.light),
+        }
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as f:
+                (np.savez_compressed if task.compress else np.savez)(f, **arrays)
+    return {"file": f"test/{name}", "group": task.group, "camera": task.camera, "light": task.light}
+
+
+# ---- driver ------------------------------------------------------------------------------------------------
+def _map(fn: Any, items: list[Any], client: Any, workers: int, progress: bool, desc: str) -> list[Any]:
+    """Run fn over items: dask (bounded windows) with a client, else a local process pool or serially."""
+    if client is not None:
+        from lightstage.pipelines.cluster import map_bounded
+
+        return map_bounded(client, fn, items, progress=progress, desc=desc)
+    from tqdm import tqdm
+
+    if workers <= 1 or len(items) <= 1:
+        return [fn(x) for x in tqdm(items, desc=desc, disable=not progress)]
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        return list(tqdm(pool.map(fn, items), total=len(items), desc=desc, disable=not progress))
+
+
+def _plan_shards(totals: np.ndarray, rays_per_shard: int) -> tuple[int, tuple[int, int, int]]:
+    """(number of shards, per-zone rays per shard): fixed-size shards in the 4:3:1 composition; fewer rays than
+    one shard -> one smaller shard (the largest multiple of 8 that the scarcest zone allows)."""
+    per = np.array(quotas(rays_per_shard))
+    S = int(np.min(totals // per))
+    if S >= 1:
+        return S, tuple(int(x) for x in per)  # type: ignore[return-value]
+    unit = int(np.min(totals // np.array(COMPOSITION)))
+    if unit < 1:
+        raise LightstageError(f"not enough rays for one shard (per zone fg/band/bg: {totals.tolist()})")
+    return 1, tuple(int(unit * c) for c in COMPOSITION)  # type: ignore[return-value]
+
+
+def run_shard(
+    work: WorkDir, config: ShardConfig, client: Any = None, progress: bool = True
+) -> dict[str, Any]:
+    """Write WORK/shards/{train/*.npy, test/*.npz, manifest.json} from the split, calibration, bounds and
+    preprocessed frames; computes bounds.json first when absent. Resumable; reports to reports/shard.json."""
+    from lightstage.calibration.record import Calibration
+    from lightstage.dataset.bounds import BoundsConfig, load_bounds, run_bounds
+    from lightstage.dataset.split import load_split
+
+    t0 = time.perf_counter()
+    root = work.shards_dir
+    manifest_path = root / MANIFEST
+    split = load_split(work.split)
+    calib = Calibration.load(work.calibration)
+    if not work.bounds.is_file():
+        run_bounds(work, BoundsConfig(), client=client, progress=progress)
+    bounds = load_bounds(work.bounds)
+    inputs_hash = hashlib.sha256(
+        b"".join(p.read_bytes() for p in (work.split, work.calibration, work.bounds))
+        + json.dumps({k: v for k, v in asdict(config).items() if k not in ("workers", "force")}).encode()
+    ).hexdigest()[:16]
+    if manifest_path.is_file() and not config.force:
+        m = json.loads(manifest_path.read_text())
+        if m.get("inputs_hash") == inputs_hash and all((root / s["file"]).is_file() for s in m["shards"]):
+            return _summary(work, m, skipped=True, seconds=time.perf_counter() - t0)
+    if config.force and root.exists():
+        shutil.rmtree(root)
+    tmp_dir = root / "tmp"
+    tmp_dir.mkdir(parents=True, exist_ok=True)
+    workers = config.workers or min(os.cpu_count() or 1, 4)
+    cfg_dict = asdict(config)
+
+    def cam(view: ViewId) -> Any:
+        if view not in calib.views:
+            raise LightstageError(f"{work.calibration}: no calibration for view {view}")
+        return calib.views[view].camera()
+
+    # phase A: one chunk per training view
+    views: list[ViewId] = split.train.views()
+    view_tasks = []
+    excluded = split.train.excluded
+    for i, v in enumerate(views):
+        lights = tuple(
+            lt for lt in split.train.groups[v.group][1] if FrameId(v.group, v.camera, lt) not in excluded
+        )
+        if not lights:
+            continue
+        c = cam(v)
+        lp = calib.light_positions[v.group][list(lights)]
+        ld = calib.light_directions(v.group)[list(lights)]
+        view_tasks.append(
+            ViewTask(
+                str(work.root), i, v.group, v.camera, lights,
+                c.K.tolist(), c.R.tolist(), c.t.tolist(), np.asarray(c.dist).tolist(), c.width, c.height,
+                lp.tolist(), ld.tolist(), cfg_dict, str(tmp_dir / f"view_{i:05d}.npy"),
+            )
+        )  # fmt: skip
+    t_a = time.perf_counter()
+    metas = _map(write_view_chunk, view_tasks, client, workers, progress, "shard: sample views")
+    t_a = time.perf_counter() - t_a
+    chunk_counts = tuple(tuple(int(x) for x in m["counts"]) for m in metas)
+    totals = np.sum(np.array(chunk_counts, np.int64).reshape(-1, 3), axis=0)
+    S, per_zone = _plan_shards(totals, config.rays_per_shard)
+    kept = tuple(S * p for p in per_zone)
+    (root / "train").mkdir(parents=True, exist_ok=True)
+    shard_tasks = [
+        ShardTask(
+            s, S, per_zone, kept, tuple(int(x) for x in totals),  # type: ignore[arg-type]
+            tuple(t.chunk for t in view_tasks), chunk_counts,
+            str(root / "train" / f"shard_{s:05d}.npy"), config.seed,
+        )
+        for s in range(S)
+    ]  # fmt: skip
+    t_b = time.perf_counter()
+    records = _map(write_shard, shard_tasks, client, workers, progress, "shard: write shards")
+    t_b = time.perf_counter() - t_b
+    # test images
+    test_tasks = []
+    (root / "test").mkdir(parents=True, exist_ok=True)
+    for f in split.test.frames():
+        v = ViewId(f.group, f.camera)
+        c = cam(v)
+        test_tasks.append(
+            TestTask(
+                str(work.root), f.group, f.camera, f.light,
+                c.K.tolist(), c.R.tolist(), c.t.tolist(), np.asarray(c.dist).tolist(), c.width, c.height,
+                calib.light_positions[f.group][f.light].tolist(), calib.light_directions(f.group)[f.light].tolist(),
+                str(root / "test" / f"{f.group}_{f.camera}_{f.light:03d}.npz"), config.compress_test,
+            )
+        )  # fmt: skip
+    t_c = time.perf_counter()
+    tests = _map(write_test_image, test_tasks, client, workers, progress, "shard: test images")
+    t_c = time.perf_counter() - t_c
+    write_json_atomic(root / "test" / "index.json", {"images": tests})
+    rays = int(sum(r["rays"] for r in records))
+    nbytes = int(sum(r["bytes"] for r in records))
+    manifest = {
+        "format_version": SHARD_FORMAT_VERSION,
+        "inputs_hash": inputs_hash,
+        "dtype": {
+            "names": list(RAY_DTYPE.names),
+            "formats": [
+                RAY_DTYPE.fields[n][0].str
+                if not RAY_DTYPE.fields[n][0].shape
+                else [RAY_DTYPE.fields[n][0].base.str, list(RAY_DTYPE.fields[n][0].shape)]
+                for n in RAY_DTYPE.names
+            ],
+            "offsets": [RAY_DTYPE.fields[n][1] for n in RAY_DTYPE.names],
+            "itemsize": RAY_DTYPE.itemsize,
+            "descr": str(RAY_DTYPE.descr),
+        },  # fmt: skip
+        "zone_labels": {ZONE_NAMES[z]: z for z in ZONES},
+        "block_order": [ZONE_NAMES[z] for z in ZONES],
+        "composition": {ZONE_NAMES[z]: c / 8 for z, c in zip(ZONES, COMPOSITION, strict=True)},
+        "rays": rays,
+        "rays_per_shard": int(sum(per_zone)),
+        "zone_counts": {ZONE_NAMES[z]: int(k) for z, k in zip(ZONES, kept, strict=True)},
+        "sampled_zone_counts": {ZONE_NAMES[z]: int(k) for z, k in zip(ZONES, totals, strict=True)},
+        "dropped_rays": int(totals.sum() - sum(kept)),
+        "duplicated_rays": int(sum(m.get("duplicated", 0) for m in metas)),
+        "missing_zone_rays": {n: int(sum(m["missing"][n] for m in metas)) for n in ZONE_NAMES.values()},
+        "bytes": nbytes,
+        "bytes_per_ray": nbytes / max(rays, 1),
+        "normalization": bounds.to_dict(),
+        "views": [str(v) for v in views],
+        "frames": int(sum(len(t.lights) for t in view_tasks)),
+        "shards": records,
+        "test": {"images": len(tests), "index": "test/index.json"},
+        "config": {k: v for k, v in cfg_dict.items() if k != "force"},
+        "coordinates": "world (metres); apply normalization to get the unit cube",
+    }
+    write_json_atomic(manifest_path, manifest)
+    shutil.rmtree(tmp_dir, ignore_errors=True)
+    timings = {
+        "sample_views_s": round(t_a, 3),
+        "write_shards_s": round(t_b, 3),
+        "test_images_s": round(t_c, 3),
+    }
+    return _summary(work, manifest, skipped=False, seconds=time.perf_counter() - t0, timings=timings)
+
+
+def _summary(
+    work: WorkDir, m: dict[str, Any], skipped: bool, seconds: float, timings: dict | None = None
+) -> dict[str, Any]:
+    summary = {
+        "stage": "shard",
+        "skipped": skipped,
+        "rays": m["rays"],
+        "shards": len(m["shards"]),
+        "rays_per_shard": m["rays_per_shard"],
+        "zone_counts": m["zone_counts"],
+        "dropped_rays": m["dropped_rays"],
+        "duplicated_rays": m["duplicated_rays"],
+        "bytes": m["bytes"],
+        "bytes_per_ray": m["bytes_per_ray"],
+        "frames": m["frames"],
+        "test_images": m["test"]["images"],
+        "output": str(work.shards_dir / MANIFEST),
+        "seconds": round(seconds, 3),
+        "timings": timings or {},
+        "warnings": [],
+        "errors": [],
+    }
+    if m["dropped_rays"]:
+        summary["warnings"].append(
+            f"{m['dropped_rays']} sampled rays dropped to keep shards fixed-size and 4:3:1"
+        )
+    if any(m["missing_zone_rays"].values()):
+        summary["warnings"].append(
+            f"rays missing because a zone was empty in some views: {m['missing_zone_rays']}"
+        )
+    write_json_atomic(work.report("shard"), summary)
+    return summary
+
+
+# ---- reading ---------------------------------------------------------------------------------------------
+def load_manifest(shards_dir: str | os.PathLike[str]) -> dict[str, Any]:
+    """Read and check shards/manifest.json (format version and ray dtype)."""
+    path = Path(shards_dir) / MANIFEST
+    try:
+        m = json.loads(path.read_text())
+    except OSError as e:
+        raise LightstageError(
+            f"{path}: cannot read shard manifest ({e.strerror}); run `lightstage shard`"
+        ) from None
+    except json.JSONDecodeError as e:
+        raise LightstageError(f"{path}: invalid JSON ({e})") from None
+    if m.get("format_version") != SHARD_FORMAT_VERSION:
+        raise LightstageError(f"{path}: unsupported shard format {m.get('format_version')!r}")
+    if m.get("dtype", {}).get("descr") != str(RAY_DTYPE.descr):
+        raise LightstageError(
+            f"{path}: ray dtype {m.get('dtype', {}).get('descr')} differs from this lightstage's"
+        )
+    return m
+
+
+def verify_shard(shards_dir: Path, record: dict[str, Any]) -> None:
+    """Raise LightstageError naming the shard if its size or sha256 differs from the manifest."""
+    path = Path(shards_dir) / record["file"]
+    if not path.is_file():
+        raise LightstageError(f"{path}: shard missing (listed in {MANIFEST}); rerun `lightstage shard`")
+    if path.stat().st_size != record["bytes"]:
+        raise LightstageError(
+            f"{path}: shard is {path.stat().st_size} bytes, manifest says {record['bytes']} (truncated?)"
+        )
+    sha = file_sha256(path)
+    if sha != record["sha256"]:
+        raise LightstageError(
+            f"{path}: checksum mismatch (sha256 {sha[:12]}..., manifest {record['sha256'][:12]}...): the shard is "
+            "corrupt; rerun `lightstage shard WORK --force`"
+        )
+
+
+def verify_shards(shards_dir: str | os.PathLike[str]) -> int:
+    """Verify every shard of a manifest; returns the number verified."""
+    m = load_manifest(shards_dir)
+    for r in m["shards"]:
+        verify_shard(Path(shards_dir), r)
+    return len(m["shards"])
