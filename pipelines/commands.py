@@ -35,6 +35,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--from", dest="from_stage", choices=STAGES, help="rerun this stage and everything after it"
     )
     run.add_argument("--only", choices=STAGES, help="run only this stage (even if up to date)")
+    run.add_argument("--to", dest="to_stage", choices=STAGES, help="stop after this stage (e.g. --to shard)")
     run.add_argument(
         "--clean", action="store_true", help="with --from/--only: remove the forced stages' outputs first"
     )
@@ -91,6 +92,7 @@ def _run(args: argparse.Namespace) -> int:
         capture=capture,
         from_stage=args.from_stage,
         only=args.only,
+        to_stage=args.to_stage,
         clean=args.clean,
         progress=not args.no_progress,
     )

@@ -22,7 +22,7 @@ from lightstage.atomic import write_json_atomic, write_text_atomic
 from lightstage.errors import LightstageError
 from lightstage.pipelines import records
 from lightstage.pipelines.config import PipelineConfig, config_as_data, config_hash
-from lightstage.pipelines.stages import BATCH_STAGES, STAGE_ORDER, StageImpl
+from lightstage.pipelines.stages import BATCH_STAGES, SPECS, STAGE_ORDER, StageImpl
 from lightstage.workdir import WorkDir
 
 MAX_SUMMARY_CHARS = 20_000
@@ -39,18 +39,24 @@ class StageResult:
     summary: dict[str, Any] = field(default_factory=dict)
 
 
-def select_stages(from_stage: str | None = None, only: str | None = None) -> tuple[list[str], bool]:
-    """The stages to consider and whether they are forced (run even when up to date)."""
-    for flag, value in (("--from", from_stage), ("--only", only)):
+def select_stages(
+    from_stage: str | None = None, only: str | None = None, to_stage: str | None = None
+) -> tuple[list[str], bool]:
+    """The stages to consider and whether they are forced (run even when up to date).
+
+    `--from S` forces S and everything after it, `--only S` forces S alone; `--to S` stops after S (not forced)."""
+    for flag, value in (("--from", from_stage), ("--only", only), ("--to", to_stage)):
         if value is not None and value not in STAGE_ORDER:
             raise LightstageError(f"{flag}: unknown stage {value!r} (stages: {', '.join(STAGE_ORDER)})")
-    if from_stage and only:
-        raise LightstageError("use either --from or --only, not both")
+    if only and (from_stage or to_stage):
+        raise LightstageError("--only cannot be combined with --from or --to")
     if only:
         return [only], True
-    if from_stage:
-        return list(STAGE_ORDER[STAGE_ORDER.index(from_stage) :]), True
-    return list(STAGE_ORDER), False
+    start = STAGE_ORDER.index(from_stage) if from_stage else 0
+    stop = STAGE_ORDER.index(to_stage) + 1 if to_stage else len(STAGE_ORDER)
+    if stop <= start:
+        raise LightstageError(f"--to {to_stage} comes before --from {from_stage}")
+    return list(STAGE_ORDER[start:stop]), bool(from_stage)
 
 
 def write_capture_pointer(work: WorkDir, capture: str | os.PathLike[str]) -> Path:
@@ -100,20 +106,19 @@ class PipelineRunner:
             self._capture_fp = {"path": str(root), **records.fingerprint([root]).to_dict()}
         return self._capture_fp
 
-    def outputs_fingerprint(self, impl: StageImpl) -> records.Fingerprint:
-        name = impl.spec.name
+    def outputs_fingerprint(self, name: str) -> records.Fingerprint:
         if name not in self._fp_cache:
-            self._fp_cache[name] = records.fingerprint(impl.spec.outputs(self.work))
+            self._fp_cache[name] = records.fingerprint(SPECS[name].outputs(self.work))
         return self._fp_cache[name]
 
-    def inputs_of(self, stage: str, impls: dict[str, StageImpl]) -> dict[str, Any]:
+    def inputs_of(self, stage: str) -> dict[str, Any]:
         """The capture and every upstream stage's record config hash and current outputs."""
         upstream: dict[str, Any] = {}
         for name in STAGE_ORDER[: STAGE_ORDER.index(stage)]:
             rec = records.read_record(self.work, name)
             upstream[name] = {
                 "config_hash": rec.get("config_hash") if rec else None,
-                "outputs": self.outputs_fingerprint(impls[name]).digest,
+                "outputs": self.outputs_fingerprint(name).digest,
             }
         return {"capture": self.capture_fingerprint(), "upstream": upstream}
 
@@ -134,11 +139,15 @@ class PipelineRunner:
             self._client = None
 
     def run(
-        self, from_stage: str | None = None, only: str | None = None, clean: bool = False
+        self,
+        from_stage: str | None = None,
+        only: str | None = None,
+        clean: bool = False,
+        to_stage: str | None = None,
     ) -> list[StageResult]:
         """Run the pipeline; returns one StageResult per selected stage. Raises LightstageError on failure."""
-        selected, forced = select_stages(from_stage, only)
-        impls = {name: self.config.stage_impl(name) for name in STAGE_ORDER}
+        selected, forced = select_stages(from_stage, only, to_stage)
+        impls = {name: self.config.stage_impl(name) for name in selected}
         # Validate every selected stage's config before any work starts.
         configs = {name: self.config.stage_config(name, impls[name]) for name in selected}
         first = STAGE_ORDER.index(selected[0])
@@ -153,9 +162,7 @@ class PipelineRunner:
             for i, name in enumerate(selected, 1):
                 if name not in BATCH_STAGES:
                     self.close_client()  # the training step gets the machine to itself
-                result = self._run_stage(
-                    impls[name], configs[name], impls, forced, clean, f"[{i}/{len(selected)}]"
-                )
+                result = self._run_stage(impls[name], configs[name], forced, clean, f"[{i}/{len(selected)}]")
                 results.append(result)
         finally:
             self.close_client()
@@ -165,19 +172,18 @@ class PipelineRunner:
         self,
         impl: StageImpl,
         config: Any,
-        impls: dict[str, StageImpl],
         forced: bool,
         clean: bool,
         tag: str,
     ) -> StageResult:
         name = impl.spec.name
         chash = config_hash(config, impl.where)
-        inputs = self.inputs_of(name, impls)
+        inputs = self.inputs_of(name)
         input_key = _digest(inputs)
         rec = records.read_record(self.work, name)
         stale = rec is not None and (rec.get("config_hash") != chash or rec.get("input_key") != input_key)
         if rec and rec.get("status") == "done" and not stale and not forced:
-            if rec.get("outputs", {}).get("digest") == self.outputs_fingerprint(impl).digest:
+            if rec.get("outputs", {}).get("digest") == self.outputs_fingerprint(name).digest:
                 self.log(f"{tag} {name}: up to date (skipped)")
                 return StageResult(name, "skipped", "up to date", 0.0, rec.get("summary", {}))
             reason = "outputs changed since the last run"
@@ -222,7 +228,7 @@ class PipelineRunner:
             raise
         seconds = time.perf_counter() - t0
         self._fp_cache.pop(name, None)
-        outputs = self.outputs_fingerprint(impl)
+        outputs = self.outputs_fingerprint(name)
         summary = _small(summary)
         report = records.read_report(self.work.report(name))
         if report is None:
@@ -299,6 +305,7 @@ def run_pipeline(
     capture: str | os.PathLike[str] | None = None,
     from_stage: str | None = None,
     only: str | None = None,
+    to_stage: str | None = None,
     clean: bool = False,
     client: Any = None,
     progress: bool = True,
@@ -312,7 +319,7 @@ def run_pipeline(
     else:
         read_capture_pointer(work)
     runner = PipelineRunner(work, config, client=client, progress=progress, log=log)
-    return runner.run(from_stage=from_stage, only=only, clean=clean)
+    return runner.run(from_stage=from_stage, only=only, clean=clean, to_stage=to_stage)
 
 
 def _digest(obj: Any) -> str:

@@ -127,19 +127,47 @@ class StageImpl:
     where: str  # "module:function", recorded in the run record
 
     def make_config(self, section: dict[str, Any]) -> Any:
-        """The stage's typed config from its YAML section (the stage's from_dict validates and names keys)."""
+        """The stage's typed config from its YAML section (the stage's from_dict validates and names keys).
+
+        An empty section for an entry function whose `config` defaults to None gives None (the stage's own
+        default, e.g. eval's config stored with the checkpoint). A `config: NAME` key loads a named base config
+        through the stage module's `load_config(name, overrides)` (e.g. train: {config: tiny})."""
+        section = dict(section)
+        if not section and _config_default_is_none(self.run):
+            return None
         if self.config_cls is None:
             if section:
                 raise LightstageError(
                     f"{self.spec.name}: this stage takes no parameters (got {sorted(section)})"
                 )
             return None
+        if "config" in section and "config" not in _field_names(self.config_cls):
+            loader = getattr(importlib.import_module(self.config_cls.__module__), "load_config", None)
+            if loader is None:
+                raise LightstageError(f"{self.spec.name}.config: this stage has no named base configs")
+            base = section.pop("config")
+            if not isinstance(base, str):
+                raise LightstageError(
+                    f"{self.spec.name}.config: expected a config name or path, got {base!r}"
+                )
+            return loader(base, section)
         if hasattr(self.config_cls, "from_dict"):
-            return self.config_cls.from_dict(dict(section))
+            return self.config_cls.from_dict(section)
         try:
             return self.config_cls(**section)
         except TypeError as e:
             raise LightstageError(f"{self.spec.name}: {e}") from None
+
+
+def _field_names(cls: type) -> set[str]:
+    import dataclasses
+
+    return {f.name for f in dataclasses.fields(cls)} if dataclasses.is_dataclass(cls) else set()
+
+
+def _config_default_is_none(fn: Callable[..., Any]) -> bool:
+    params = list(inspect.signature(fn).parameters.values())
+    return len(params) >= 2 and params[1].default is None
 
 
 def _import(name: str) -> Any | None:
@@ -167,17 +195,18 @@ def _config_class(fn: Callable[..., Any], module: Any, spec: StageSpec) -> type 
     params = list(inspect.signature(fn).parameters.values())
     if len(params) >= 2:
         ann = params[1].annotation
-        if isinstance(ann, type):
+        if isinstance(ann, type) and ann is not inspect.Parameter.empty:
             return ann
         if isinstance(ann, str):
             for name in ann.replace("None", "").replace("|", " ").split():
                 obj = getattr(module, name.strip("'\" "), None)
                 if isinstance(obj, type):
                     return obj
-    for name in spec.config_names:
-        obj = getattr(module, name, None)
-        if isinstance(obj, type):
-            return obj
+    for where in (module, _import(f"{spec.package}.config")):
+        for name in spec.config_names:
+            obj = getattr(where, name, None) if where is not None else None
+            if isinstance(obj, type):
+                return obj
     return None
 
 

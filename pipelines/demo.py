@@ -1,0 +1,288 @@
+"""`lightstage demo`: simulate a capture, run the whole pipeline on it with the tiny training config, relight
+the model with an environment map and write WORK/report.md with PNGs a person can look at.
+
+Every step is resumable: a rerun reuses the simulated capture and skips up-to-date stages.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lightstage.atomic import write_json_atomic, write_text_atomic
+from lightstage.workdir import WorkDir
+
+DEMO_PRESET = "small"
+ENVMAP_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "envmaps"
+RELIGHT_LIGHTS = "32"
+MAX_VIEWS_SHOWN = 6
+MAX_PREDICTIONS_SHOWN = 4
+
+
+def _say(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def simulate(work: WorkDir, preset: str, seed: int) -> Path:
+    """Simulate the demo capture into WORK/capture (skipped when a finished one with the same preset and seed
+    is there)."""
+    from lightstage.capture.simulate import simulate_capture
+
+    capture = work.root / "capture"
+    marker = work.root / ".demo-capture.json"
+    wanted = {"preset": preset, "seed": seed}
+    if marker.is_file() and json.loads(marker.read_text()) == wanted and (capture / "capture.yaml").is_file():
+        _say(f"demo: reusing the simulated {preset!r} capture in {capture}")
+        return capture
+    if capture.exists():
+        shutil.rmtree(capture)
+    _say(f"demo: simulating the {preset!r} capture (seed {seed}) into {capture}")
+    t0 = time.perf_counter()
+    simulate_capture(capture, preset=preset, seed=seed)
+    _say(f"demo: simulated in {time.perf_counter() - t0:.0f} s")
+    write_json_atomic(marker, wanted)
+    return capture
+
+
+def demo_config(
+    config_path: str | os.PathLike[str] | None, workers: int | None, scheduler: str | None
+) -> Any:
+    """The demo's pipeline config: the built-in `demo` (tiny training) unless a file is given."""
+    from lightstage.pipelines.config import load_pipeline_config
+
+    config = load_pipeline_config(config_path if config_path is not None else "demo")
+    return config.with_cluster(workers=workers, scheduler=scheduler)
+
+
+def run_demo(
+    work_dir: str | os.PathLike[str],
+    *,
+    config_path: str | os.PathLike[str] | None = None,
+    preset: str | None = None,
+    seed: int = 0,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    progress: bool = True,
+) -> Path:
+    """Simulate, run every stage, relight and write the report; returns the report's path."""
+    from lightstage.pipelines.runner import run_pipeline
+
+    t0 = time.perf_counter()
+    work = WorkDir.at(Path(work_dir).resolve())
+    work.root.mkdir(parents=True, exist_ok=True)
+    config = demo_config(config_path, workers, scheduler)
+    capture = simulate(work, preset or DEMO_PRESET, seed)
+    results = run_pipeline(work, config, capture=capture, progress=progress)
+    timings = {r.stage: round(r.seconds, 1) for r in results}
+    relit = relight(work, progress)
+    report = write_report(work, timings, relit, time.perf_counter() - t0, preset or DEMO_PRESET)
+    _say(f"demo: finished in {time.perf_counter() - t0:.0f} s")
+    print(f"demo report: {report}")
+    print(f"  pictures:  {work.root / 'report'}")
+    print(f"  stage reports: {work.root / 'reports'}; evaluation images: {work.eval_dir}")
+    return report
+
+
+# ---- relighting ------------------------------------------------------------------------------------------
+def sky_envmap(path: Path, width: int = 64, height: int = 32) -> Path:
+    """A synthetic lat-long sky: blue gradient above the horizon, dim ground, a small bright sun."""
+    from lightstage.capture.frames import write_exr
+
+    lat = (0.5 - (np.arange(height) + 0.5) / height) * np.pi  # +pi/2 at the top row
+    lon = ((np.arange(width) + 0.5) / width) * 2 * np.pi - np.pi
+    lat_g, lon_g = np.meshgrid(lat, lon, indexing="ij")
+    up = np.clip(np.sin(lat_g), 0, None)[..., None]
+    img = np.where(lat_g[..., None] > 0, np.array([0.25, 0.45, 0.9]) * (0.4 + 0.6 * up), [0.08, 0.07, 0.06])
+    sun = np.exp(
+        -(((lat_g - np.deg2rad(45)) ** 2 + (lon_g - np.deg2rad(30)) ** 2) / (2 * np.deg2rad(4) ** 2))
+    )
+    img = img + 40.0 * sun[..., None] * np.array([1.0, 0.95, 0.85])
+    write_exr(path, img.astype(np.float32))
+    return path
+
+
+def pick_envmap(work: WorkDir) -> Path:
+    """A real envmap from the shared data folder when present, else a synthetic sky written into the report."""
+    env_dir = Path(os.environ.get("LIGHTSTAGE_ENVMAPS", ENVMAP_DIR))
+    found = sorted(env_dir.glob("*.exr")) if env_dir.is_dir() else []
+    if found:
+        return found[0]
+    return sky_envmap(work.root / "report" / "sky.exr")
+
+
+def relight(work: WorkDir, progress: bool) -> dict[str, Any]:
+    """Relight the trained model with an envmap (median cut, a few dozen lights) for the first calibrated view."""
+    from lightstage.training.relight import RelightConfig, run_relight
+
+    envmap = pick_envmap(work)
+    out = work.root / "relight"
+    done = out / "relight.json"
+    if done.is_file():
+        summary = json.loads(done.read_text())
+        if summary.get("envmap") == str(envmap):
+            return summary
+    _say(f"demo: relighting with {envmap.name} ({RELIGHT_LIGHTS} median-cut lights)")
+    config = RelightConfig(envmap=str(envmap), lights=RELIGHT_LIGHTS, out=str(out))
+    return run_relight(work, config, progress=progress)
+
+
+# ---- the report ------------------------------------------------------------------------------------------
+def _read_png(path: Path) -> np.ndarray | None:
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        return None
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=2)
+    if img.dtype != np.uint8:
+        img = (img.astype(np.float64) / np.iinfo(img.dtype).max * 255).astype(np.uint8)
+    return cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2RGB)
+
+
+def montage(images: list[np.ndarray], columns: int = 3, height: int = 200) -> np.ndarray:
+    """Tile images (resized to one height) into a grid with a thin white gap."""
+    import cv2
+
+    tiles = [cv2.resize(im, (max(1, round(im.shape[1] * height / im.shape[0])), height)) for im in images]
+    width = max(t.shape[1] for t in tiles)
+    tiles = [np.pad(t, ((2, 2), (2, 2 + width - t.shape[1]), (0, 0)), constant_values=255) for t in tiles]
+    rows = [np.concatenate(tiles[i : i + columns], axis=1) for i in range(0, len(tiles), columns)]
+    row_w = max(r.shape[1] for r in rows)
+    rows = [np.pad(r, ((0, 0), (0, row_w - r.shape[1]), (0, 0)), constant_values=255) for r in rows]
+    return np.concatenate(rows, axis=0)
+
+
+def _views_with(work: WorkDir, names: tuple[str, ...]) -> list[Path]:
+    root = work.preprocess_dir / "views"
+    found: list[Path] = []
+    for view in sorted(p for p in root.glob("*/*") if p.is_dir()):
+        for name in names:
+            if (view / name).is_file():
+                found.append(view / name)
+                break
+    step = max(1, len(found) // MAX_VIEWS_SHOWN)
+    return found[::step][:MAX_VIEWS_SHOWN]
+
+
+def _load_json(path: Path) -> dict[str, Any]:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def _metrics_table(ev: dict[str, Any]) -> list[str]:
+    lines = ["| metric | value |", "|---|---|"]
+    found = False
+    for section in ("mean", "metrics", "summary"):
+        block = ev.get(section)
+        if isinstance(block, dict):
+            for k, v in block.items():
+                if isinstance(v, int | float | str) and not isinstance(v, bool):
+                    lines.append(
+                        f"| {section}.{k} | {v:.4g} |" if isinstance(v, float) else f"| {section}.{k} | {v} |"
+                    )
+                    found = True
+    for k, v in ev.items():
+        if (
+            isinstance(v, float | int)
+            and not isinstance(v, bool)
+            and ("psnr" in k or "ssim" in k or "lpips" in k)
+        ):
+            lines.append(f"| {k} | {v:.4g} |" if isinstance(v, float) else f"| {k} | {v} |")
+            found = True
+        if isinstance(v, dict) and ("baseline" in k or "lpips" in k):
+            for kk, vv in v.items():
+                if isinstance(vv, int | float | str) and not isinstance(vv, bool):
+                    lines.append(
+                        f"| {k}.{kk} | {vv:.4g} |" if isinstance(vv, float) else f"| {k}.{kk} | {vv} |"
+                    )
+                    found = True
+    return lines if found else ["(no metrics found in reports/eval.json)"]
+
+
+def write_report(
+    work: WorkDir, timings: dict[str, float], relit: dict[str, Any], seconds: float, preset: str
+) -> Path:
+    """WORK/report.md plus PNGs in WORK/report/: masks, camera layout, predictions vs truth, relit image."""
+    from lightstage.capture.frames import write_image
+
+    pics = work.root / "report"
+    pics.mkdir(parents=True, exist_ok=True)
+    lines = [
+        "# lightstage demo report",
+        "",
+        f"Simulated `{preset}` capture in `{work.root / 'capture'}`, processed in `{work.root}` "
+        f"in {seconds / 60:.1f} minutes on this machine. Per-stage records: `reports/<stage>.json`.",
+        "",
+        "## Stages",
+        "",
+        "| stage | seconds this run | record |",
+        "|---|---|---|",
+    ]
+    for stage in ("validate", "preprocess", "calibrate", "split", "shard", "train", "eval"):
+        rec = _load_json(work.report(stage)).get("pipeline", {})
+        took = timings.get(stage, 0.0)
+        status = rec.get("status", "?")
+        errs = rec.get("errors", 0)
+        lines.append(f"| {stage} | {took:.1f} | {status}, {rec.get('seconds', 0):.1f} s, {errs} error(s) |")
+
+    masks = [_read_png(p) for p in _views_with(work, ("overlay.png", "mask.png"))]
+    masks = [m for m in masks if m is not None]
+    lines += ["", "## Segmentation masks", ""]
+    if masks:
+        write_image(pics / "masks.png", montage(masks))
+        lines.append("![masks](report/masks.png)")
+    else:
+        lines.append("(no per-view mask images found under preprocess/views)")
+
+    layout = work.calibration_dir / "layout.png"
+    lines += ["", "## Camera layout", ""]
+    if layout.is_file():
+        shutil.copyfile(layout, pics / "layout.png")
+        lines.append("![camera layout](report/layout.png)")
+    else:
+        lines.append("(calibration wrote no layout.png)")
+
+    preds = sorted(p for p in work.eval_dir.rglob("*.png"))[:MAX_PREDICTIONS_SHOWN]
+    lines += ["", "## Test predictions (prediction | ground truth | error)", ""]
+    if preds:
+        tiles = [t for t in (_read_png(p) for p in preds) if t is not None]
+        write_image(pics / "predictions.png", montage(tiles, columns=1, height=160))
+        lines.append("![predictions](report/predictions.png)")
+        lines += [f"- `{p.relative_to(work.root)}`" for p in preds]
+    else:
+        lines.append("(eval wrote no PNGs)")
+
+    lines += ["", "## Metrics (test split)", ""]
+    lines += _metrics_table(_load_json(work.report("eval")))
+
+    lines += ["", "## Environment-map relighting", ""]
+    relit_pngs = sorted((work.root / "relight").glob("*.png"))
+    if relit_pngs:
+        for p in relit_pngs[:3]:
+            shutil.copyfile(p, pics / f"relit_{p.name}")
+            lines.append(f"![{p.stem}](report/relit_{p.name})")
+        lines.append("")
+        lines.append(
+            f"Envmap: `{relit.get('envmap')}`, {RELIGHT_LIGHTS} median-cut lights; tonemap: {relit.get('tonemap', '')}."
+        )
+    else:
+        lines.append("(no relit image)")
+    path = work.root / "report.md"
+    write_text_atomic(path, "\n".join(lines) + "\n")
+    return path
+
+
+def _asdict(obj: Any) -> Any:
+    return dataclasses.asdict(obj) if dataclasses.is_dataclass(obj) else obj
