@@ -16,7 +16,7 @@ import sys
 import time
 from pathlib import Path
 
-from lightstage.pipelines.cluster import ClusterSettings, dask_client
+from lightstage.pipelines.cluster import dask_client
 from lightstage.pipelines.config import load_pipeline_config
 from lightstage.pipelines.runner import run_pipeline
 from lightstage.pipelines.stages import BATCH_STAGES
