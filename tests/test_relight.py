@@ -302,3 +302,77 @@ def test_run_render_single_and_orbit(tmp_path):
         count += 1
     assert count == 6
     assert summary["exposure"] > 0
+
+
+@pytest.fixture(scope="module")
+def trained_work(tmp_path_factory):
+    """A work dir with a (barely) trained tiny checkpoint of the model package's synthetic sphere."""
+    from lightstage.training.config import load_config
+    from lightstage.training.synthetic import SyntheticSphere
+    from lightstage.training.trainer import fit
+
+    work = WorkDir.at(tmp_path_factory.mktemp("trained") / "work")
+    cfg = load_config(
+        "tiny", {"optim": {"steps": 3, "batch_rays": 64}, "checkpoint_every": 3, "eval": {"stats_batches": 1}}
+    )
+    sphere = SyntheticSphere(batch_size=64)
+    fit(cfg, sphere, work.train_dir, sphere.centre, sphere.scale, progress=False)
+    return work
+
+
+@pytest.mark.slow
+def test_cli_relight_render_mesh_on_a_trained_checkpoint(trained_work, tmp_path, capsys):
+    from lightstage.capture.frames import read_exr, write_exr
+    from lightstage.pipelines.cli import main
+    from lightstage.training.mesh import density_grid, read_ply
+    from lightstage.training.relight import load_model
+
+    work = str(trained_work.root)
+    write_exr(tmp_path / "env.exr", _sky(32, 64).astype(np.float32), half=False)
+    rc = main(
+        ["relight", work, "--envmap", str(tmp_path / "env.exr"), "--lights", "2,all", "--resolution", "8x4",
+         "--camera", "orbit:size=16x12", "--rotate-deg", "30", "--out", str(tmp_path / "relit")]
+    )  # fmt: skip
+    assert rc == 0
+    summary = json.loads((tmp_path / "relit" / "relight.json").read_text())
+    res = summary["views"]["orbit_az0_el20"]["results"]
+    assert res["all"]["lights"] == 32 and "relative_l2" in res["2"]["vs_all"]
+    assert summary["olat_factor"] == pytest.approx(2.25)  # no calibration: the paper stage's 1.5 m
+    assert np.all(np.isfinite(read_exr(tmp_path / "relit" / "orbit_az0_el20_all.exr")))
+
+    rc = main(["render", work, "--camera", "orbit:size=16x12", "--light", "azel:30,45", "--orbit", "3",
+               "--out", str(tmp_path / "orbit")])  # fmt: skip
+    assert (
+        rc == 0
+        and (tmp_path / "orbit" / "orbit.mp4").is_file()
+        and (tmp_path / "orbit" / "orbit_strip.png").is_file()
+    )
+
+    model = load_model(trained_work)
+    grid = density_grid(model, 12, progress=False)
+    capsys.readouterr()
+    assert (
+        main(["mesh", work, "--resolution", "12", "--threshold", "1e30", "--out", str(tmp_path / "m.ply")])
+        == 2
+    )
+    assert "outside the grid's range" in capsys.readouterr().err
+    level = float(np.quantile(grid, 0.9))
+    if level > grid.min():
+        rc = main(
+            ["mesh", work, "--resolution", "12", "--threshold", repr(level), "--out", str(tmp_path / "m.ply")]
+        )
+        assert rc == 0
+        v, f = read_ply(tmp_path / "m.ply")
+        lo, hi = model.centre - model.scale, model.centre + model.scale
+        assert (
+            len(f) > 0 and np.all(v >= lo - 1e-4) and np.all(v <= hi + 1e-4)
+        )  # world units, inside the bounds
+    # bad input is one line, exit 2
+    assert (
+        main(["relight", work, "--envmap", str(tmp_path / "missing.exr"), "--out", str(tmp_path / "x")]) == 2
+    )
+    assert (
+        main(["render", work, "--camera", "000/cam00", "--light", "dir:0,0,1", "--out", str(tmp_path / "x")])
+        == 2
+    )
+    assert "no calibration" in capsys.readouterr().err

@@ -174,9 +174,9 @@ def run_mesh(
     t0 = time.perf_counter()
     device = pick_device(config.device)
     if model is None:
-        from lightstage.training.model import load_trained
+        from lightstage.training.relight import load_model
 
-        model = load_trained(work, config.checkpoint, device)
+        model = load_model(work, config.checkpoint, device)
     centre, scale = bounds_of(model)
     grid = density_grid(model, config.resolution, config.chunk, device, progress)
     t1 = time.perf_counter()

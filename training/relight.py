@@ -38,26 +38,71 @@ class RelightableModel(Protocol):
         ...
 
 
+def load_model(work: WorkDir, checkpoint: str | None = None, device: str = "cpu") -> RelightableModel:
+    """The trained model of WORK (its latest checkpoint, or `checkpoint`) on `device`."""
+    from lightstage.training.trained import load_trained
+
+    return load_trained(work, Path(checkpoint) if checkpoint else None, device)
+
+
+def camera_rays(camera) -> tuple[np.ndarray, np.ndarray]:
+    """World rays (H*W, 3) through the pixel centres of a PinholeCamera (OpenCV distortion undone)."""
+    from lightstage.cameras import pixel_centers, pixel_rays
+
+    uv = pixel_centers(camera.width, camera.height).reshape(-1, 2)
+    if np.any(np.asarray(camera.dist) != 0):
+        import cv2
+
+        uv = cv2.undistortPoints(
+            uv[:, None, :].astype(np.float64), camera.K, np.asarray(camera.dist), P=camera.K
+        )[:, 0]
+    return pixel_rays(uv, camera.K, camera.R, camera.t)
+
+
+def olat_images(model: RelightableModel, camera, directions: np.ndarray, batch_rays: int = 65536):
+    """Yield (H, W, 3) float32 white-light OLAT images for each light direction. Small images are batched:
+    several lights share one `render_rays` call (rays repeated per light); large ones use image_from_camera."""
+    import torch
+
+    h, w = camera.height, camera.width
+    per_call = max(1, batch_rays // (h * w))
+    if per_call == 1:
+        for d in directions:
+            yield np.asarray(model.image_from_camera(camera, np.asarray(d, np.float32)), np.float32)
+        return
+    o, r = camera_rays(camera)
+    o_t = torch.from_numpy(o.astype(np.float32))
+    r_t = torch.from_numpy(r.astype(np.float32))
+    for i in range(0, len(directions), per_call):
+        group = np.asarray(directions[i : i + per_call], np.float32)
+        light = torch.from_numpy(np.repeat(group, h * w, axis=0))
+        rgb = model.render_rays(o_t.repeat(len(group), 1), r_t.repeat(len(group), 1), light)
+        rgb = torch.as_tensor(rgb).detach().float().cpu().numpy().reshape(len(group), h, w, 3)
+        yield from rgb
+
+
 def relight_image(
     model: RelightableModel,
     camera,
     lights: Lights,
     olat_factor: float,
     progress: bool = False,
+    batch_rays: int = 65536,
 ) -> np.ndarray:
     """(H, W, 3) float32 HDR: sum over lights of OLAT(omega_k) * rgb_k * olat_factor (zero lights skipped)."""
     from tqdm import tqdm
 
     active = lights.nonzero()
     acc = np.zeros((camera.height, camera.width, 3), np.float64)
-    for d, rgb in tqdm(
-        list(zip(active.directions, active.rgb, strict=True)),
+    images = olat_images(model, camera, active.directions, batch_rays)
+    for img, rgb in tqdm(
+        zip(images, active.rgb, strict=True),
+        total=len(active),
         desc="relight",
         disable=not progress,
         leave=False,
     ):
-        img = np.asarray(model.image_from_camera(camera, np.asarray(d, np.float32)), np.float64)
-        acc += img * (np.asarray(rgb, np.float64) * olat_factor)
+        acc += img.astype(np.float64) * (np.asarray(rgb, np.float64) * olat_factor)
     return acc.astype(np.float32)
 
 
@@ -143,9 +188,7 @@ def run_relight(
     env = load_envmap(config.envmap, parse_resolution(config.resolution), config.rotate_deg)
     scene = load_scene_info(work, config.light_distance, config.light_intensity)
     if model is None:
-        from lightstage.training.model import load_trained
-
-        model = load_trained(work, config.checkpoint, config.device)
+        model = load_model(work, config.checkpoint, config.device)
     specs = list(config.cameras)
     if not specs:
         specs = [_default_camera(scene)]

@@ -381,9 +381,9 @@ def run_render(
     t0 = time.perf_counter()
     scene = load_scene_info(work, config.light_distance, config.light_intensity)
     if model is None:
-        from lightstage.training.model import load_trained
+        from lightstage.training.relight import load_model
 
-        model = load_trained(work, config.checkpoint, config.device)
+        model = load_model(work, config.checkpoint, config.device)
     named = parse_camera(config.camera, scene, model)
     camera = downscale_camera(named.camera, config.downscale)
     light = parse_light(config.light, scene)
