@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import os
+import stat
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -113,11 +114,15 @@ def read_exr_header(path: str | os.PathLike[str]) -> FrameHeader:
     header; truncation found in the chunk table is reported in `chunk_problem` (read_exr refuses it).
     """
     path = Path(path)
-    _check_file(path)
     try:
-        size = path.stat().st_size
         with path.open("rb") as f:
-            head = f.read(min(size, 65536))
+            st = os.fstat(f.fileno())
+            size = st.st_size
+            if not stat.S_ISREG(st.st_mode):
+                raise _Bad("not a regular file")
+            if size == 0:
+                raise _Bad("empty file")
+            head = f.read(min(size, 4096))  # a typical header is well under 1 KB
             if len(head) < 8 or head[:4] != EXR_MAGIC:
                 raise _Bad("not an EXR file (bad magic number)")
             try:
@@ -131,6 +136,8 @@ def read_exr_header(path: str | os.PathLike[str]) -> FrameHeader:
             chunk_problem = _check_chunk_tables(f, parts, table_at, size, bool(flags & _FLAG_MULTIPART))
     except _Bad as e:
         raise LightstageError(f"{path}: {e}") from None
+    except FileNotFoundError:
+        raise LightstageError(f"{path}: file not found") from None
     except OSError as e:
         raise LightstageError(f"{path}: cannot read ({e.strerror or e})") from None
     first = parts[0]
@@ -336,8 +343,9 @@ def _check_chunk_tables(f: Any, parts: list[_Part], table_at: int, size: int, mu
         return f"truncated: file ends at byte {size}, inside the chunk table (needs {table_end} bytes)"
     f.seek(table_at)
     offsets = np.frombuffer(f.read(8 * total), dtype="<u8")
-    if (offsets == 0).any():
-        return f"incomplete: {int((offsets == 0).sum())} of {total} chunks were never written"
+    unwritten = int(np.count_nonzero(offsets == 0))
+    if unwritten:  # OpenEXR itself refuses a table with unwritten entries
+        return f"incomplete: {unwritten} of {total} chunks were never written"
     if (offsets < table_end).any():
         return "corrupt chunk table: offsets point into the header"
     if (offsets >= size).any():
@@ -345,8 +353,16 @@ def _check_chunk_tables(f: Any, parts: list[_Part], table_at: int, size: int, mu
         return f"truncated: {bad} of {total} chunks start past the end of the file ({size} bytes)"
     last = int(offsets.max())
     f.seek(last)
-    prefix = (4 if multipart else 0) + (16 if parts[0].tiles is not None else 4)
-    head = f.read(prefix + 4)
+    head = f.read(4 + 16 + 4)  # [part number] + tile coordinates or scanline y + data size
+    part = parts[0]
+    if multipart:
+        if len(head) < 4:
+            return f"truncated: last chunk at byte {last} has no complete header ({size} bytes)"
+        (index,) = struct.unpack_from("<i", head, 0)
+        if not 0 <= index < len(parts):
+            return f"corrupt chunk table: the chunk at byte {last} names part {index}"
+        part = parts[index]
+    prefix = (4 if multipart else 0) + (16 if part.tiles is not None else 4)
     if len(head) < prefix + 4:
         return f"truncated: last chunk at byte {last} has no complete header ({size} bytes)"
     (data_size,) = struct.unpack_from("<i", head, prefix)
@@ -586,10 +602,15 @@ def _check_file(path: Path) -> None:
         raise LightstageError(f"{path}: empty file")
 
 
+def oversized(width: int, height: int) -> bool:
+    """True for a data window no supported frame has (over MAX_PIXELS, or a side over MAX_SIDE)."""
+    return width * height > MAX_PIXELS or max(width, height) > MAX_SIDE
+
+
 def _check_size(header: FrameHeader, expected: tuple[int, int] | None) -> None:
-    if header.width * header.height > MAX_PIXELS:
+    if oversized(header.width, header.height):
         raise LightstageError(
-            f"{header.path}: data window {header.width}x{header.height} exceeds the pixel limit"
+            f"{header.path}: data window {header.width}x{header.height} exceeds the size limit ({MAX_SIDE} per side, {MAX_PIXELS} pixels)"
         )
     if expected is not None and (header.width, header.height) != tuple(expected):
         raise LightstageError(

@@ -11,6 +11,7 @@ import json
 import os
 import selectors
 import signal
+import stat
 import subprocess
 import sys
 import tempfile
@@ -177,7 +178,7 @@ def check_header(frame_id: str, path: Path, rel: str, expected_size: tuple[int, 
     except OSError as e:
         return rec.fail("unreadable", f"{path}: cannot stat ({e.strerror or e})")
     rec.size, rec.mtime_ns = st.st_size, st.st_mtime_ns
-    if not path.is_file():
+    if not stat.S_ISREG(st.st_mode):
         return rec.fail("unreadable", f"{path}: not a regular file")
     if st.st_size == 0:
         return rec.fail("empty", f"{path}: empty file")
@@ -192,8 +193,9 @@ def check_header(frame_id: str, path: Path, rel: str, expected_size: tuple[int, 
     rec.compression = header.compression
     rec.dtype = header.rgb_dtype() or header.dtype
     if header.chunk_problem:
-        return rec.fail("truncated", f"{path}: {header.chunk_problem}")
-    if header.width * header.height > frames.MAX_PIXELS or (
+        cut = header.chunk_problem.startswith(("truncated", "incomplete"))
+        return rec.fail("truncated" if cut else "unreadable", f"{path}: {header.chunk_problem}")
+    if frames.oversized(header.width, header.height) or (
         expected_size is not None and (header.width, header.height) != tuple(expected_size)
     ):
         want = f"expected {expected_size[0]}x{expected_size[1]}" if expected_size else "over the pixel limit"
