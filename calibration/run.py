@@ -1,0 +1,319 @@
+"""The calibration stage: `run_calibrate(work, config)` writes WORK/calibration/ and WORK/reports/calibration.json.
+
+Methods (explicit, never a silent fallback):
+- `nominal`: cameras, lights, axis and yaws straight from stage.yaml.
+- `sfm`: pycolmap on the preprocess stage's well-lit images + masks (`sfm.py`), registered to the world frame
+  with the nominal rig as gauge (`register.py`); fails with a LightstageError naming the views when views stay
+  unregistered or residuals exceed the thresholds.
+Outputs: calibration.json (the record every later stage reads), colmap/ (sparse model), transforms.json
+(nerfstudio, OpenGL), layout.png; the report holds SfM statistics and, when the capture has ground truth,
+errors against it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lightstage.atomic import write_json_atomic
+from lightstage.calibration.record import Calibration, ViewCalibration
+from lightstage.cameras import camera_center, scale_intrinsics
+from lightstage.capture.layout import Capture, open_capture
+from lightstage.errors import LightstageError
+from lightstage.rig import light_position_in_world
+from lightstage.workdir import DOWNSCALE, WorkDir
+
+STAGE = "calibration"
+METHODS = ("sfm", "nominal")
+
+
+@dataclass(frozen=True)
+class CalibrateConfig:
+    """Settings of the calibration stage (defaults suit the simulator's `small` capture)."""
+
+    method: str = "sfm"
+    intrinsics: str | None = (
+        None  # JSON from `lightstage calibrate-intrinsics` (raw-resolution K + distortion)
+    )
+    max_mean_reprojection_px: float = 1.0  # SfM fails above this mean reprojection error
+    min_registered_fraction: float = 1.0  # SfM fails when fewer views register (1.0: every view)
+    max_rig_fit_rms_mm: float = 50.0  # recovered rig vs nominal camera centres; larger = wrong stage.yaml
+    max_features: int = 8192
+    mask_erode_px: int = 2
+    peak_threshold: float = 0.004
+    ransac_max_error_px: float = 2.0
+    num_threads: int = 2
+    seed: int = 0
+    keep_sfm_workspace: bool = False  # keep WORK/calibration/sfm (images, database) for debugging
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any] | None) -> CalibrateConfig:
+        """Build from a mapping; unknown keys or wrong types raise a LightstageError naming the key."""
+        d = dict(d or {})
+        known = {f.name: f for f in fields(cls)}
+        kwargs: dict[str, Any] = {}
+        for key, value in d.items():
+            if key not in known:
+                raise LightstageError(f"calibration config: unknown key {key!r} (known: {', '.join(known)})")
+            default = getattr(cls, key)
+            if key == "intrinsics":
+                if value is not None and not isinstance(value, str):
+                    raise LightstageError(f"calibration config: {key}: expected a path string, got {value!r}")
+            elif isinstance(default, bool):
+                if not isinstance(value, bool):
+                    raise LightstageError(f"calibration config: {key}: expected true/false, got {value!r}")
+            elif isinstance(default, int):
+                if not isinstance(value, int) or isinstance(value, bool):
+                    raise LightstageError(f"calibration config: {key}: expected an integer, got {value!r}")
+            elif isinstance(default, float):
+                if not isinstance(value, int | float) or isinstance(value, bool):
+                    raise LightstageError(f"calibration config: {key}: expected a number, got {value!r}")
+                value = float(value)
+            elif isinstance(default, str) and not isinstance(value, str):
+                raise LightstageError(f"calibration config: {key}: expected a string, got {value!r}")
+            kwargs[key] = value
+        cfg = cls(**kwargs)
+        if cfg.method not in METHODS:
+            raise LightstageError(
+                f"calibration config: method: expected one of {METHODS}, got {cfg.method!r}"
+            )
+        if not 0.0 < cfg.min_registered_fraction <= 1.0:
+            raise LightstageError("calibration config: min_registered_fraction: must be in (0, 1]")
+        return cfg
+
+    def digest(self) -> str:
+        return hashlib.sha256(json.dumps(asdict(self), sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _capture_of(work: WorkDir) -> Capture:
+    if not work.capture_pointer.is_file():
+        raise LightstageError(
+            f"{work.capture_pointer}: missing (run `lightstage preprocess` on the capture first)"
+        )
+    return open_capture(Path(work.capture_pointer.read_text().strip()))
+
+
+def load_intrinsics(path: str | Path, camera_ids: list[str]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per-camera raw-resolution (K, dist) from a `calibrate-intrinsics` JSON file."""
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text())
+        cams = d["cameras"]
+        out = {
+            c: (np.asarray(v["K"], float).reshape(3, 3), np.asarray(v["dist"], float).reshape(5))
+            for c, v in cams.items()
+        }
+    except OSError as e:
+        raise LightstageError(f"{path}: cannot read intrinsics ({e.strerror})") from None
+    except (KeyError, TypeError, ValueError) as e:
+        raise LightstageError(f"{path}: malformed intrinsics file ({type(e).__name__}: {e})") from None
+    unknown = sorted(set(out) - set(camera_ids))
+    if unknown:
+        raise LightstageError(f"{path}: cameras {unknown} are not in the stage")
+    return out
+
+
+def ground_truth_path(capture: Capture) -> Path:
+    return capture.root / "ground_truth" / "geometry.json"
+
+
+def _light_floor(capture: Capture, truth: Calibration) -> Calibration:
+    """The truth's rig poses carrying the NOMINAL rig-frame lights: the best a rig-locked light model can do."""
+    p_rig = capture.stage.light_positions_rig()
+    lights = {g: light_position_in_world(p_rig, y, truth.axis) for g, y in truth.yaws_deg.items()}
+    return Calibration("floor", {}, lights, truth.axis, truth.yaws_deg)
+
+
+def _sfm_calibration(
+    work: WorkDir, capture: Capture, config: CalibrateConfig, intr: dict, log
+) -> tuple[Calibration, dict[str, Any], Any]:
+    from lightstage.calibration.register import register_rig
+    from lightstage.calibration.sfm import SfmOptions, run_sfm
+
+    stage = capture.stage
+    views = {}
+    missing = []
+    for v in capture.views():
+        w, m = work.wellit(v), work.mask(v)
+        if w.is_file() and m.is_file():
+            views[v] = (w, m)
+        else:
+            missing.append(str(v))
+    if missing:
+        raise LightstageError(
+            f"{work.preprocess_dir}: no well-lit image or mask for {len(missing)} views "
+            f"({', '.join(missing[:10])}{' ...' if len(missing) > 10 else ''}); run `lightstage preprocess` first"
+        )
+    if stage.width % DOWNSCALE or stage.height % DOWNSCALE:
+        raise LightstageError(
+            f"stage resolution {stage.width}x{stage.height} is not divisible by {DOWNSCALE}"
+        )
+    w, h = stage.width // DOWNSCALE, stage.height // DOWNSCALE
+    proc_intr = {c: (scale_intrinsics(K, 1.0 / DOWNSCALE), dist, w, h) for c, (K, dist) in intr.items()}
+    options = SfmOptions(
+        max_features=config.max_features,
+        mask_erode_px=config.mask_erode_px,
+        peak_threshold=config.peak_threshold,
+        ransac_max_error_px=config.ransac_max_error_px,
+        num_threads=config.num_threads,
+        seed=config.seed,
+    )
+    sfm_dir = work.calibration_dir / "sfm"
+    result = run_sfm(views, proc_intr, stage.camera_ids, sfm_dir, options, log=log)
+    stats = dict(result.stats)
+    n_needed = int(np.ceil(config.min_registered_fraction * len(views)))
+    if len(result.registered) < n_needed:
+        raise LightstageError(
+            f"SfM registered {len(result.registered)}/{len(views)} views (needs {n_needed}); "
+            f"unregistered: {', '.join(map(str, result.unregistered))}"
+        )
+    mean_err = stats["reprojection_error_px"]["mean"]
+    if mean_err is None or mean_err > config.max_mean_reprojection_px:
+        raise LightstageError(
+            f"SfM mean reprojection error {mean_err} px exceeds {config.max_mean_reprojection_px} px "
+            f"(views: {', '.join(map(str, result.registered))})"
+        )
+    nominal_centres = {c.id: camera_center(c.R, c.t) for c in stage.cameras}
+    reg = register_rig(
+        result.sensor_from_rig,
+        result.rig_from_world,
+        nominal_centres,
+        stage.group_names,
+        reference_yaw_deg=stage.groups[0].yaw_deg,
+        nominal_direction=np.asarray(stage.axis.direction),
+    )
+    if reg.rig_fit_rms_m * 1000.0 > config.max_rig_fit_rms_mm:
+        raise LightstageError(
+            f"SfM rig does not match the nominal rig of stage.yaml: RMS camera-centre misfit "
+            f"{reg.rig_fit_rms_m * 1000:.1f} mm > {config.max_rig_fit_rms_mm} mm"
+        )
+    calib_views = {}
+    for v in result.registered:
+        R, t = reg.camera_pose(v.group, v.camera)
+        K, dist = intr[v.camera]
+        calib_views[v] = ViewCalibration(
+            np.asarray(K, float), R, t, stage.width, stage.height, np.asarray(dist, float)
+        )
+    p_rig = stage.light_positions_rig()
+    calib = Calibration(
+        method="sfm",
+        views=calib_views,
+        light_positions={g: reg.light_positions(g, p_rig) for g in reg.rig_to_world},
+        axis=reg.turntable.axis,
+        yaws_deg={g: reg.turntable.yaws_deg[g] for g in stage.group_names if g in reg.turntable.yaws_deg},
+    )
+    stats["registration"] = {
+        "metres_per_sfm_unit": reg.rig_similarity.scale,
+        "rig_fit_rms_mm": 1000.0 * reg.rig_fit_rms_m,
+        "turntable_rotation_misfit_deg": reg.turntable.rotation_misfit_deg,
+        "turntable_translation_misfit_mm": {
+            g: 1000.0 * x for g, x in reg.turntable.translation_misfit_m.items()
+        },
+        "gauge": "world = stage rig frame of group "
+        f"{stage.group_names[0]} (Umeyama of recovered rig camera centres onto the nominal ones), "
+        "placed at that group's nominal yaw about the fitted axis",
+    }
+    points = colors = None
+    rec = result.reconstruction
+    if rec is not None and rec.num_points3D():
+        xyz = np.stack([p.xyz for p in rec.points3D.values()])
+        points = reg.world_from_sfm.apply(xyz)
+        colors = np.stack([p.color for p in rec.points3D.values()])
+    return calib, stats, (points, colors)
+
+
+def run_calibrate(
+    work: WorkDir, config: CalibrateConfig | None = None, client: Any = None, progress: bool = True
+) -> dict[str, Any]:
+    """Calibrate the capture of `work` (see the module doc); returns a small summary. `client` is unused
+    (SfM is one process; pycolmap uses `config.num_threads` threads)."""
+    from lightstage.calibration.export import write_colmap_model, write_transforms
+    from lightstage.calibration.nominal import nominal_calibration
+    from lightstage.calibration.plot import plot_layout
+
+    config = config or CalibrateConfig()
+    work = WorkDir.at(work.root) if isinstance(work, WorkDir) else WorkDir.at(work)
+    report_path = work.report(STAGE)
+    outputs = [
+        work.calibration,
+        work.calibration_dir / "transforms.json",
+        work.calibration_dir / "layout.png",
+        work.calibration_dir / "colmap" / "images.bin",
+    ]
+    if report_path.is_file() and all(p.is_file() for p in outputs):
+        try:
+            old = json.loads(report_path.read_text())
+            if old.get("status") == "ok" and old.get("config_digest") == config.digest():
+                Calibration.load(work.calibration)
+                return {**old.get("summary", {}), "skipped": True}
+        except (OSError, ValueError, LightstageError):
+            pass
+
+    def log(msg: str) -> None:
+        if progress:
+            print(msg, flush=True)
+
+    t0 = time.perf_counter()
+    capture = _capture_of(work)
+    stage = capture.stage
+    intr = {c.id: (c.K, c.distortion if c.distortion is not None else np.zeros(5)) for c in stage.cameras}
+    if config.intrinsics:
+        intr.update(load_intrinsics(config.intrinsics, stage.camera_ids))
+    report: dict[str, Any] = {
+        "stage": STAGE,
+        "method": config.method,
+        "capture": str(capture.root),
+        "config": asdict(config),
+        "config_digest": config.digest(),
+        "warnings": [],
+    }
+    try:
+        points = colors = None
+        if config.method == "nominal":
+            calib = nominal_calibration(stage, intr if config.intrinsics else None)
+            stats: dict[str, Any] = {"num_views": len(calib.views), "num_registered": len(calib.views)}
+        else:
+            calib, stats, (points, colors) = _sfm_calibration(work, capture, config, intr, log)
+        report["sfm" if config.method == "sfm" else "nominal"] = stats
+        calib.save(work.calibration)
+        write_colmap_model(calib, work.calibration_dir / "colmap", points, colors)
+        write_transforms(calib, work.calibration_dir / "transforms.json", work)
+        plot_layout(calib, work.calibration_dir / "layout.png")
+        gt = ground_truth_path(capture)
+        if gt.is_file():
+            from lightstage.calibration.evaluate import compare_to_truth
+
+            truth = Calibration.load(gt)
+            report["ground_truth"] = compare_to_truth(calib, truth, _light_floor(capture, truth))
+    except LightstageError as e:
+        report.update(status="failed", error=str(e), seconds=round(time.perf_counter() - t0, 2))
+        write_json_atomic(report_path, report)
+        raise
+    finally:
+        if config.method == "sfm" and not config.keep_sfm_workspace:
+            import shutil
+
+            shutil.rmtree(work.calibration_dir / "sfm", ignore_errors=True)
+    seconds = time.perf_counter() - t0
+    summary = {
+        "method": config.method,
+        "views": len(calib.views),
+        "registered": stats.get("num_registered"),
+        "seconds": round(seconds, 2),
+    }
+    if config.method == "sfm":
+        summary["mean_reprojection_error_px"] = stats["reprojection_error_px"]["mean"]
+    if "ground_truth" in report:
+        g = report["ground_truth"]
+        summary["rotation_error_deg_max"] = g["raw"]["rotation_error_deg"]["max"]
+        summary["camera_centre_error_mm_max"] = g["raw"]["camera_centre_error_mm"]["max"]
+    report.update(status="ok", seconds=round(seconds, 2), summary=summary)
+    write_json_atomic(report_path, report)
+    log(f"calibration ({config.method}): {len(calib.views)} views -> {work.calibration} in {seconds:.1f} s")
+    return summary

@@ -1,0 +1,328 @@
+"""Structure from motion with pycolmap on the well-lit per-view images: one rig of N cameras, one frame per group.
+
+The stage's cameras are rigidly mounted, so COLMAP models them as one rig (sensors = cameras, the first camera is
+the reference sensor) seen in one frame per turntable group. The object is static in the world, the background
+turns with the rig, so features are restricted to the (eroded) foreground mask. Intrinsics are known (stage.yaml
+or `calibrate-intrinsics`, scaled to the processed resolution) and held fixed; the rig starts at its nominal
+geometry and bundle adjustment refines it.
+
+COLMAP uses the same pixel convention as lightstage: the centre of the first pixel is (0.5, 0.5) (SIFT keypoints
+are shifted by +0.5 on extraction), so K at processed resolution is used as is.
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from lightstage.capture.layout import ViewId
+from lightstage.errors import LightstageError
+
+
+@dataclass(frozen=True)
+class SfmOptions:
+    """Knobs of the SfM run (defaults tuned on the simulator's `small` capture)."""
+
+    max_features: int = 8192
+    mask_erode_px: int = 2  # ignore features this close to the silhouette (it moves with the view)
+    first_octave: int = -1  # -1 upsamples once: small processed images need it
+    peak_threshold: float = 0.004
+    max_ratio: float = 0.8
+    ransac_max_error_px: float = 2.0
+    refine_rig: bool = True
+    min_num_matches: int = 15
+    num_threads: int = 2
+    seed: int = 0
+    final_ba_iterations: int = 200
+    use_rig: bool = True
+
+
+@dataclass
+class SfmResult:
+    """What registration needs from SfM, plus statistics for the report."""
+
+    sensor_from_rig: dict[str, tuple[np.ndarray, np.ndarray]]  # camera id -> (R, t), SfM units
+    rig_from_world: dict[str, tuple[np.ndarray, np.ndarray]]  # group -> (R, t), SfM units
+    registered: list[ViewId]
+    unregistered: list[ViewId]
+    stats: dict = field(default_factory=dict)
+    reconstruction: object = None  # pycolmap.Reconstruction
+
+
+def _image_name(view: ViewId) -> str:
+    return f"{view.camera}/{view.group}.png"
+
+
+def prepare_images(
+    views: dict[ViewId, tuple[Path, Path]], image_dir: Path, mask_dir: Path, erode_px: int
+) -> list[str]:
+    """Copy well-lit images into the COLMAP layout `<camera>/<group>.png` and write eroded feature masks."""
+    names = []
+    kernel = (
+        cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode_px + 1, 2 * erode_px + 1))
+        if erode_px
+        else None
+    )
+    for view, (wellit, mask) in sorted(views.items()):
+        name = _image_name(view)
+        img = cv2.imread(str(wellit), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise LightstageError(f"{wellit}: cannot read the well-lit image of view {view}")
+        m = cv2.imread(str(mask), cv2.IMREAD_GRAYSCALE)
+        if m is None:
+            raise LightstageError(f"{mask}: cannot read the mask of view {view}")
+        if m.shape != img.shape[:2]:
+            raise LightstageError(f"{mask}: mask size {m.shape[::-1]} differs from image {img.shape[1::-1]}")
+        m = np.where(m > 127, 255, 0).astype(np.uint8)
+        if kernel is not None:
+            m = cv2.erode(m, kernel)
+        (image_dir / view.camera).mkdir(parents=True, exist_ok=True)
+        (mask_dir / view.camera).mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(wellit, image_dir / name)
+        # COLMAP reads the mask of image NAME from MASK_DIR/NAME.png; features where the mask is 0 are dropped.
+        cv2.imwrite(str(mask_dir / (name + ".png")), m)
+        names.append(name)
+    return names
+
+
+def run_sfm(
+    views: dict[ViewId, tuple[Path, Path]],
+    intrinsics: dict[str, tuple[np.ndarray, np.ndarray, int, int]],
+    camera_order: list[str],
+    work_dir: Path,
+    options: SfmOptions = SfmOptions(),
+    log=print,
+) -> SfmResult:
+    """Run feature extraction, exhaustive matching and rig-aware incremental mapping.
+
+    `views`: view -> (well-lit PNG, mask PNG). `intrinsics`: camera id -> (K, dist, width, height) at the
+    images' resolution.
+    Raises LightstageError naming the views that could not be registered.
+    """
+    import time
+
+    import pycolmap
+
+    pycolmap.set_random_seed(options.seed)
+    t0 = time.perf_counter()
+    if work_dir.exists():
+        shutil.rmtree(work_dir)
+    image_dir, mask_dir = work_dir / "images", work_dir / "masks"
+    db_path = work_dir / "database.db"
+    image_dir.mkdir(parents=True)
+    mask_dir.mkdir(parents=True)
+    names = prepare_images(views, image_dir, mask_dir, options.mask_erode_px)
+    by_name = {_image_name(v): v for v in views}
+    cams_present = [c for c in camera_order if any(v.camera == c for v in views)]
+    if not cams_present:
+        raise LightstageError("SfM: no views to calibrate")
+
+    has_dist = any(np.any(np.asarray(intrinsics[c][1]) != 0) for c in cams_present)
+    model = "OPENCV" if has_dist else "PINHOLE"
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = model
+    reader.mask_path = str(mask_dir)
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = options.num_threads
+    extraction.sift.max_num_features = options.max_features
+    extraction.sift.first_octave = options.first_octave
+    extraction.sift.peak_threshold = options.peak_threshold
+    pycolmap.extract_features(
+        db_path,
+        image_dir,
+        image_names=names,
+        camera_mode=pycolmap.CameraMode.PER_FOLDER,
+        reader_options=reader,
+        extraction_options=extraction,
+        device=pycolmap.Device.cpu,
+    )
+    t_extract = time.perf_counter() - t0
+
+    # Known intrinsics per camera.
+    with pycolmap.Database.open(db_path) as db:
+        camera_of = {}
+        for image in db.read_all_images():
+            camera_of[by_name[image.name].camera] = image.camera_id
+        num_keypoints = {
+            image.name: db.num_keypoints_for_image(image.image_id) for image in db.read_all_images()
+        }
+        for cid in cams_present:
+            K, dist, w, h = intrinsics[cid]
+            cam = db.read_camera(camera_of[cid])
+            if cam.width != w or cam.height != h:
+                raise LightstageError(
+                    f"SfM: images of camera {cid} are {cam.width}x{cam.height}, expected {w}x{h} (raw / 4)"
+                )
+            params = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
+            if model == "OPENCV":
+                d = np.zeros(5) if dist is None else np.asarray(dist, dtype=np.float64)
+                params += [d[0], d[1], d[2], d[3]]
+                if abs(d[4]) > 0:
+                    raise LightstageError(
+                        f"SfM: camera {cid} has k3 distortion, which COLMAP's OPENCV model lacks"
+                    )
+            cam.params = params
+            cam.has_prior_focal_length = True
+            db.update_camera(cam)
+
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = options.num_threads
+    matching.sift.max_ratio = options.max_ratio
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.max_error = options.ransac_max_error_px
+    verification.detect_watermark = False
+    pycolmap.match_exhaustive(
+        db_path, matching_options=matching, verification_options=verification, device=pycolmap.Device.cpu
+    )
+    t_match = time.perf_counter() - t0 - t_extract
+
+    mapping = pycolmap.IncrementalPipelineOptions()
+    mapping.num_threads = options.num_threads
+    mapping.random_seed = options.seed
+    mapping.min_num_matches = options.min_num_matches
+    mapping.ba_refine_focal_length = False
+    mapping.ba_refine_principal_point = False
+    mapping.ba_refine_extra_params = False
+    mapping.ba_refine_sensor_from_rig = options.refine_rig
+    mapping.mapper.abs_pose_refine_focal_length = False
+    mapping.mapper.abs_pose_refine_extra_params = False
+    mapping.multiple_models = False
+    sparse_dir = work_dir / "sparse"
+    sparse_dir.mkdir()
+    recs = pycolmap.incremental_mapping(db_path, image_dir, sparse_dir, options=mapping)
+    t_map = time.perf_counter() - t0 - t_extract - t_match
+    if not recs:
+        raise LightstageError(
+            f"SfM failed: no reconstruction from {len(views)} views (too few matches on the foreground?); "
+            f"unregistered views: {_view_list(sorted(views))}"
+        )
+    rec = max(recs.values(), key=lambda r: r.num_reg_images())
+
+    # Pass 2 (COLMAP's documented two-pass rig workflow; its rig-aware incremental mapper stalled after two
+    # frames on turntable data): derive the rig (mean sensor-from-reference poses over the groups) from the
+    # unconstrained reconstruction, turn the images of a group into one rig frame, and bundle-adjust with the
+    # rig constraint. The first camera is the reference sensor.
+    reg_names = {rec.images[i].name for i in rec.reg_image_ids()}
+    lost = [c for c in cams_present if not any(n.startswith(c + "/") for n in reg_names)]
+    if lost:
+        raise LightstageError(
+            f"SfM failed: cameras {', '.join(lost)} have no registered view; unregistered views: "
+            f"{_view_list(sorted(v for v in views if _image_name(v) not in reg_names))}"
+        )
+    if options.use_rig:
+        rig_config = pycolmap.RigConfig()
+        rig_cams = []
+        for cid in cams_present:
+            rc = pycolmap.RigConfigCamera()
+            rc.image_prefix = f"{cid}/"
+            rc.ref_sensor = cid == cams_present[0]
+            rig_cams.append(rc)
+        rig_config.cameras = rig_cams
+        with pycolmap.Database.open(db_path) as db:
+            pycolmap.apply_rig_config([rig_config], db, rec)
+
+    if options.final_ba_iterations > 0:
+        ba = pycolmap.BundleAdjustmentOptions()
+        ba.refine_focal_length = False
+        ba.refine_principal_point = False
+        ba.refine_extra_params = False
+        ba.refine_sensor_from_rig = options.refine_rig
+        ba.print_summary = False
+        ba.ceres.solver_options.max_num_iterations = options.final_ba_iterations
+        ba.ceres.solver_options.function_tolerance = 1e-10
+        ba.ceres.solver_options.num_threads = options.num_threads
+        pycolmap.bundle_adjustment(rec, ba)
+    t_ba = time.perf_counter() - t0 - t_extract - t_match - t_map
+
+    registered, sensor_from_rig, rig_from_world = [], {}, {}
+    for image in rec.images.values():
+        if image.has_pose:
+            registered.append(by_name[image.name])
+    reg_set = set(registered)
+    unregistered = sorted(v for v in views if v not in reg_set)
+    for rig in rec.rigs.values():
+        for sensor_id in rig.sensor_ids():
+            cam_id = sensor_id.id
+            cid = next((c for c, i in camera_of.items() if i == cam_id), None)
+            if cid is None:
+                continue
+            if rig.is_ref_sensor(sensor_id):
+                sensor_from_rig[cid] = (np.eye(3), np.zeros(3))
+            else:
+                T = rig.sensor_from_rig(sensor_id)
+                sensor_from_rig[cid] = (T.rotation.matrix(), np.asarray(T.translation))
+    groups_of_frame: dict[int, set[str]] = {}
+    for image in rec.images.values():
+        groups_of_frame.setdefault(image.frame_id, set()).add(by_name[image.name].group)
+    for frame_id, frame in rec.frames.items():
+        if not frame.has_pose:
+            continue
+        groups = groups_of_frame.get(frame_id, set())
+        if len(groups) != 1:
+            raise LightstageError(f"SfM: a COLMAP frame holds groups {sorted(groups)} (image naming broke)")
+        T = frame.rig_from_world
+        rig_from_world[groups.pop()] = (T.rotation.matrix(), np.asarray(T.translation))
+
+    errors = _reprojection_errors(rec)
+    track_lengths = np.array([p.track.length() for p in rec.points3D.values()]) if rec.num_points3D() else []
+    stats = {
+        "num_views": len(views),
+        "num_registered": len(registered),
+        "unregistered": [str(v) for v in unregistered],
+        "num_points3D": int(rec.num_points3D()),
+        "num_observations": int(rec.compute_num_observations()),
+        "mean_track_length": float(np.mean(track_lengths)) if len(track_lengths) else 0.0,
+        "reprojection_error_px": {
+            "mean": float(errors.mean()) if errors.size else None,
+            "median": float(np.median(errors)) if errors.size else None,
+            "p95": float(np.percentile(errors, 95)) if errors.size else None,
+        },
+        "keypoints_per_image": {
+            "mean": float(np.mean(list(num_keypoints.values()))),
+            "min": int(min(num_keypoints.values())),
+        },
+        "num_reconstructions": len(recs),
+        "seconds": {
+            "extract": round(t_extract, 2),
+            "match": round(t_match, 2),
+            "map": round(t_map, 2),
+            "final_ba": round(t_ba, 2),
+        },
+    }
+    log(
+        f"SfM: {len(registered)}/{len(views)} views registered, {rec.num_points3D()} points, "
+        f"mean reprojection error {stats['reprojection_error_px']['mean']:.3f} px, "
+        f"mean track length {stats['mean_track_length']:.2f}"
+    )
+    return SfmResult(sensor_from_rig, rig_from_world, sorted(registered), unregistered, stats, rec)
+
+
+def _reprojection_errors(rec) -> np.ndarray:
+    """Per-observation reprojection errors (pixels) of a reconstruction."""
+    errs = []
+    for image in rec.images.values():
+        if not image.has_pose:
+            continue
+        cam = image.camera
+        T = image.cam_from_world()
+        R, t = T.rotation.matrix(), np.asarray(T.translation)
+        pts2d, pts3d = [], []
+        for p in image.points2D:
+            if p.has_point3D():
+                pts2d.append(p.xy)
+                pts3d.append(rec.points3D[p.point3D_id].xyz)
+        if not pts2d:
+            continue
+        xc = np.asarray(pts3d) @ R.T + t
+        proj = cam.img_from_cam(xc)
+        errs.append(np.linalg.norm(np.asarray(proj) - np.asarray(pts2d), axis=1))
+    return np.concatenate(errs) if errs else np.zeros(0)
+
+
+def _view_list(views: list[ViewId], limit: int = 40) -> str:
+    names = [str(v) for v in views]
+    return ", ".join(names[:limit]) + (f" (+{len(names) - limit} more)" if len(names) > limit else "")

@@ -1,0 +1,90 @@
+"""Registration of a recovered rig to the world frame: exact recovery of a synthetic axis, yaws and scale."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from lightstage.calibration.register import Similarity, fit_turntable, register_rig, umeyama
+from lightstage.cameras import camera_center
+from lightstage.capture.presets import make_stage
+from lightstage.rig import TurntableAxis, camera_pose_in_world, group_transform
+
+
+def _random_similarity(rng: np.random.Generator) -> Similarity:
+    return Similarity(
+        float(rng.uniform(0.2, 5.0)), Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)
+    )
+
+
+def _synthetic_sfm(stage, axis, yaws, sim, ref_cam="cam00"):
+    """What SfM would return for a perfect rig: COLMAP-style rig frame = reference camera frame, world = sim(world)."""
+    cams = {c.id: (np.asarray(c.R), np.asarray(c.t)) for c in stage.cameras}
+    world_pose = {}
+    for g, yaw in yaws.items():
+        for cid, (R, t) in cams.items():
+            world_pose[g, cid] = camera_pose_in_world(R, t, yaw, axis)
+    sfm_pose = {k: sim.transform_pose(*v) for k, v in world_pose.items()}
+    R_ref, t_ref = cams[ref_cam]
+    # sensor_from_rig with the rig frame = the reference camera: cam_from_refcam = cam_from_rig * refcam_from_rig^-1.
+    sensor_from_rig = {}
+    for cid, (R, t) in cams.items():
+        Rr = R @ R_ref.T
+        sensor_from_rig[cid] = (Rr, sim.scale * (t - Rr @ t_ref))
+    rig_from_world = {g: sfm_pose[g, ref_cam] for g in yaws}
+    return sensor_from_rig, rig_from_world, world_pose
+
+
+def test_umeyama_recovers_similarity():
+    rng = np.random.default_rng(0)
+    S = _random_similarity(rng)
+    x = rng.normal(size=(12, 3))
+    est = umeyama(x, S.apply(x))
+    assert est.scale == pytest.approx(S.scale, rel=1e-12)
+    np.testing.assert_allclose(est.R, S.R, atol=1e-12)
+    np.testing.assert_allclose(est.t, S.t, atol=1e-12)
+    np.testing.assert_allclose(S.inverse().apply(S.apply(x)), x, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_registration_recovers_axis_yaws_scale_exactly(seed):
+    rng = np.random.default_rng(seed)
+    stage = make_stage("t", num_cameras=8, num_lights=12, width=512, height=340)
+    direction = np.array([0.02, -0.015, 1.0])
+    direction /= np.linalg.norm(direction)
+    axis = TurntableAxis(tuple(direction), (0.004, -0.003, 0.0))
+    # The point closest to the origin, as the fit reports it.
+    a = np.asarray(axis.point) - (np.asarray(axis.point) @ direction) * direction
+    yaws = {g.name: (0.0 if i == 0 else g.yaw_deg + rng.normal(0, 0.3)) for i, g in enumerate(stage.groups)}
+    sim = _random_similarity(rng)
+    sensor_from_rig, rig_from_world, world_pose = _synthetic_sfm(stage, axis, yaws, sim)
+    nominal = {c.id: camera_center(c.R, c.t) for c in stage.cameras}
+    reg = register_rig(sensor_from_rig, rig_from_world, nominal, stage.group_names)
+    assert reg.rig_similarity.scale == pytest.approx(1.0 / sim.scale, rel=1e-9)
+    assert reg.rig_fit_rms_m < 1e-9
+    np.testing.assert_allclose(reg.turntable.axis.direction, direction, atol=1e-9)
+    np.testing.assert_allclose(reg.turntable.axis.point, a, atol=1e-9)
+    for g, y in yaws.items():
+        assert reg.turntable.yaws_deg[g] == pytest.approx(y % 360.0, abs=1e-7)
+        assert reg.turntable.rotation_misfit_deg[g] < 1e-7
+        assert reg.turntable.translation_misfit_m[g] < 1e-9
+        for cid in stage.camera_ids:
+            R, t = reg.camera_pose(g, cid)
+            np.testing.assert_allclose(R, world_pose[g, cid][0], atol=1e-9)
+            np.testing.assert_allclose(t, world_pose[g, cid][1], atol=1e-9)
+        # Lights locked to the rig.
+        Rg, tg = group_transform(y, axis)
+        p_rig = stage.light_positions_rig()
+        np.testing.assert_allclose(reg.light_positions(g, p_rig), p_rig @ Rg.T + tg, atol=1e-9)
+
+
+def test_fit_turntable_handles_yaws_past_180_degrees():
+    axis = TurntableAxis((0.0, 0.0, 1.0), (0.01, 0.02, 0.0))
+    from lightstage.calibration.register import Rigid
+
+    motions = {f"{y:03d}": Rigid(*group_transform(y, axis)) for y in (0, 40, 170, 200, 320)}
+    fit = fit_turntable(motions, "000")
+    for g in motions:
+        assert fit.yaws_deg[g] == pytest.approx(float(g), abs=1e-9)
+    np.testing.assert_allclose(fit.axis.point, axis.point, atol=1e-12)

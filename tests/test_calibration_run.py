@@ -1,0 +1,165 @@
+"""The calibration stage end to end: nominal method on a tiny capture, exports re-read by pycolmap, transforms.json
+conventions, the clear SfM failure, and (slow) SfM on the simulator's `small` capture against ground truth."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from lightstage.calibration.export import colmap_image_name
+from lightstage.calibration.record import Calibration
+from lightstage.calibration.run import CalibrateConfig, run_calibrate
+from lightstage.cameras import opengl_c2w_to_opencv, pixel_rays, project
+from lightstage.capture.layout import FrameId, open_capture
+from lightstage.errors import LightstageError
+from lightstage.tonemap import auto_exposure, tonemap_u8
+from lightstage.workdir import DOWNSCALE, WorkDir
+
+
+def stand_in_preprocess(capture_root: Path, work: WorkDir, lights: list[int] | None = None) -> None:
+    """Well-lit PNG + mask per view as the preprocess stage writes them, made directly from the raw frames
+    (mean over lights, 4x area downscale, one tonemap per capture) and the simulator's GT masks. Used only
+    where the real preprocess stage is unavailable."""
+    from lightstage.capture.frames import read_image
+
+    cap = open_capture(capture_root)
+    work.root.mkdir(parents=True, exist_ok=True)
+    work.capture_pointer.write_text(str(capture_root))
+    w, h = cap.stage.width // DOWNSCALE, cap.stage.height // DOWNSCALE
+    lights = lights if lights is not None else [lt.index for lt in cap.stage.lights]
+    means = {}
+    for v in cap.views():
+        acc = np.zeros((cap.stage.height, cap.stage.width, 3), np.float32)
+        for li in lights:
+            acc += read_image(cap.frame_path(FrameId(v.group, v.camera, li)))[..., :3]
+        means[v] = cv2.resize(acc / len(lights), (w, h), interpolation=cv2.INTER_AREA)
+    masks = {}
+    for v in cap.views():
+        m = cv2.imread(
+            str(capture_root / "ground_truth" / "masks" / v.group / f"{v.camera}.png"), cv2.IMREAD_GRAYSCALE
+        )
+        masks[v] = cv2.resize(m.astype(np.float32) / 255.0, (w, h), interpolation=cv2.INTER_AREA) > 0.5
+    fg = np.concatenate([means[v][masks[v]] for v in means])
+    exposure = auto_exposure(fg[None], 99.0)
+    for v, img in means.items():
+        work.view_dir(v).mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(work.wellit(v)), cv2.cvtColor(tonemap_u8(img, exposure), cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(work.mask(v)), masks[v].astype(np.uint8) * 255)
+
+
+@pytest.fixture(scope="module")
+def tiny_work(tiny_capture: Path, tmp_path_factory: pytest.TempPathFactory) -> WorkDir:
+    work = WorkDir.at(tmp_path_factory.mktemp("work") / "tiny")
+    work.root.mkdir(parents=True)
+    work.capture_pointer.write_text(str(tiny_capture))
+    return work
+
+
+def test_config_rejects_unknown_keys_and_bad_types():
+    assert CalibrateConfig.from_dict({"method": "nominal"}).method == "nominal"
+    with pytest.raises(LightstageError, match="unknown key 'metod'"):
+        CalibrateConfig.from_dict({"metod": "sfm"})
+    with pytest.raises(LightstageError, match="max_features"):
+        CalibrateConfig.from_dict({"max_features": "many"})
+    with pytest.raises(LightstageError, match="method"):
+        CalibrateConfig.from_dict({"method": "magic"})
+
+
+def test_nominal_on_tiny_capture_and_exports(tiny_work: WorkDir, tiny_capture: Path):
+    import pycolmap
+
+    summary = run_calibrate(tiny_work, CalibrateConfig(method="nominal"), progress=False)
+    cap = open_capture(tiny_capture)
+    assert summary["views"] == len(cap.stage.groups) * len(cap.stage.cameras)
+    calib = Calibration.load(tiny_work.calibration)
+    assert calib.method == "nominal"
+    for v in cap.views():
+        nominal = cap.stage.view_camera(v.group, v.camera)
+        np.testing.assert_allclose(calib.views[v].R, nominal.R, atol=1e-12)
+        np.testing.assert_allclose(calib.views[v].t, nominal.t, atol=1e-12)
+        np.testing.assert_allclose(calib.light_positions[v.group], cap.stage.light_positions_world(v.group))
+    report = json.loads(tiny_work.report("calibration").read_text())
+    assert report["status"] == "ok" and report["method"] == "nominal"
+    # The tiny capture has ground truth: nominal geometry is off by the simulator's jitter, and says so.
+    assert report["ground_truth"]["raw"]["rotation_error_deg"]["max"] > 0.0
+    assert (tiny_work.calibration_dir / "layout.png").stat().st_size > 10_000
+
+    # COLMAP export re-read by pycolmap: same poses and intrinsics (processed resolution).
+    rec = pycolmap.Reconstruction(str(tiny_work.calibration_dir / "colmap"))
+    assert rec.num_reg_images() == len(calib.views)
+    for image in rec.images.values():
+        cam_id, group = image.name.removesuffix(".png").split("/")
+        vc = calib.views[next(v for v in calib.views if v.group == group and v.camera == cam_id)]
+        T = image.cam_from_world()
+        np.testing.assert_allclose(T.rotation.matrix(), vc.R, atol=1e-9)
+        np.testing.assert_allclose(np.asarray(T.translation), vc.t, atol=1e-9)
+        np.testing.assert_allclose(image.camera.calibration_matrix(), vc.camera().K, atol=1e-9)
+
+    # transforms.json: OpenGL c2w round-trips to the OpenCV pose; paths point at the well-lit images.
+    tf = json.loads((tiny_work.calibration_dir / "transforms.json").read_text())
+    assert len(tf["frames"]) == len(calib.views)
+    for fr in tf["frames"]:
+        v = next(v for v in calib.views if v.group == fr["group"] and v.camera == fr["camera"])
+        R, t = opengl_c2w_to_opencv(np.asarray(fr["transform_matrix"]))
+        np.testing.assert_allclose(R, calib.views[v].R, atol=1e-12)
+        np.testing.assert_allclose(t, calib.views[v].t, atol=1e-12)
+        c2w = np.asarray(fr["transform_matrix"])
+        # OpenGL: the camera looks down its -z axis; a point in front projects to the principal point.
+        p = c2w[:3, 3] - 0.7 * c2w[:3, 2]
+        np.testing.assert_allclose(
+            project(p, calib.views[v].camera().K, R, t), [fr["cx"], fr["cy"]], atol=1e-9
+        )
+        assert (tiny_work.calibration_dir / fr["file_path"]).resolve() == tiny_work.wellit(v).resolve()
+        assert np.asarray(fr["light_positions"]).shape == (len(cap.stage.lights), 3)
+
+    # Resumable: a second run with the same config skips.
+    assert run_calibrate(tiny_work, CalibrateConfig(method="nominal"), progress=False)["skipped"] is True
+
+
+def test_world_camera_pixel_round_trip(tiny_capture: Path):
+    """A pixel's ray through the calibrated camera projects back to the pixel; processed K = raw K / 4."""
+    cap = open_capture(tiny_capture)
+    truth = Calibration.load(tiny_capture / "ground_truth" / "geometry.json")
+    vc = next(iter(truth.views.values()))
+    raw, proc = vc.camera(1), vc.camera()
+    uv = np.array([[0.5, 0.5], [proc.width - 0.5, proc.height - 0.5], [proc.width / 2, proc.height / 3]])
+    o, d = pixel_rays(uv, proc.K, proc.R, proc.t)
+    pts = o + 0.9 * cap.stage.sphere_radius * d
+    np.testing.assert_allclose(project(pts, proc.K, proc.R, proc.t), uv, atol=1e-9)
+    # The same world points land at 4x the coordinates in the raw image (pixel-centre convention).
+    np.testing.assert_allclose(project(pts, raw.K, raw.R, raw.t), uv * DOWNSCALE, atol=1e-8)
+
+
+def test_sfm_failure_is_a_clear_error_naming_views(tiny_capture: Path, tmp_path: Path):
+    """Featureless images: SfM must fail loudly, naming views, and never fall back to nominal."""
+    work = WorkDir.at(tmp_path / "w")
+    cap = open_capture(tiny_capture)
+    work.root.mkdir(parents=True)
+    work.capture_pointer.write_text(str(tiny_capture))
+    w, h = cap.stage.width // DOWNSCALE, cap.stage.height // DOWNSCALE
+    for v in cap.views():
+        work.view_dir(v).mkdir(parents=True)
+        cv2.imwrite(str(work.wellit(v)), np.full((h, w, 3), 90, np.uint8))
+        cv2.imwrite(str(work.mask(v)), np.full((h, w), 255, np.uint8))
+    with pytest.raises(LightstageError, match=r"SfM.*000/cam00"):
+        run_calibrate(work, CalibrateConfig(method="sfm"), progress=False)
+    assert not work.calibration.exists()
+    report = json.loads(work.report("calibration").read_text())
+    assert report["status"] == "failed" and "SfM" in report["error"]
+
+
+def test_missing_preprocess_outputs_are_named(tiny_work: WorkDir, tmp_path: Path):
+    work = WorkDir.at(tmp_path / "w")
+    work.root.mkdir()
+    shutil.copy(tiny_work.capture_pointer, work.capture_pointer)
+    with pytest.raises(LightstageError, match="lightstage preprocess"):
+        run_calibrate(work, CalibrateConfig(method="sfm"), progress=False)
+
+
+def test_colmap_image_names_are_rig_folders():
+    assert colmap_image_name("040", "cam03") == "cam03/040.png"
