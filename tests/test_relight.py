@@ -307,6 +307,8 @@ def test_run_render_single_and_orbit(tmp_path):
 @pytest.fixture(scope="module")
 def trained_work(tmp_path_factory):
     """A work dir with a (barely) trained tiny checkpoint of the model package's synthetic sphere."""
+    pytest.importorskip("lightstage.training.trained")  # the model package's loader (load_trained)
+    pytest.importorskip("lightstage.training.trainer")
     from lightstage.training.config import load_config
     from lightstage.training.synthetic import SyntheticSphere
     from lightstage.training.trainer import fit
