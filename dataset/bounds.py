@@ -23,12 +23,14 @@ BOUNDS_FORMAT_VERSION = 1
 @dataclass(frozen=True)
 class BoundsConfig:
     """Voxels per axis per pass, passes (each refines the previous box), the consistency a voxel needs (fraction
-    of the views that see it whose mask covers it), the least views that must see it, and the box margin."""
+    of the views that see it whose mask covers it), the least views (count, and fraction of all views) that must
+    see it inside their image (so regions outside most frusta are carved), and the box margin."""
 
     resolution: int = 64
     passes: int = 2
     consistency: float = 0.9
     min_views: int = 2
+    min_seen: float = 0.5
     margin: float = 0.1
     force: bool = False
 
@@ -126,27 +128,32 @@ class _View:
 
 def carve(views: list[_View], lo: np.ndarray, hi: np.ndarray, cfg: BoundsConfig) -> np.ndarray:
     """Boolean occupancy (n, n, n) of voxel centres in [lo, hi]: kept when, in at least `consistency` of the
-    views that see it, its projected footprint (a disc of the voxel's half-diagonal) touches the mask."""
+    views in front of which it lies, its projected footprint (a disc of the voxel's half-diagonal) touches the
+    mask (projections outside the image are tested at the nearest border pixel)."""
     n = cfg.resolution
     step = (hi - lo) / n
     axes = [lo[i] + (np.arange(n) + 0.5) * step[i] for i in range(3)]
-    X = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    X = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3).astype(np.float32)
     radius = 0.5 * float(np.linalg.norm(step))
     seen = np.zeros(len(X), np.int32)
     hits = np.zeros(len(X), np.int32)
     for v in views:
-        xc = X @ v.R.T + v.t
+        xc = X @ v.R.T.astype(np.float32) + v.t.astype(np.float32)
         z = xc[:, 2]
         front = z > 1e-6
         uv = (xc[:, :2] / np.where(front, z, 1.0)[:, None]) * np.diag(v.K)[:2] + v.K[:2, 2]
         h, w = v.dist_to_fg.shape
-        inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-        idx = np.flatnonzero(inside)
-        d = v.dist_to_fg[uv[idx, 1].astype(int), uv[idx, 0].astype(int)]
+        # Outside the image a voxel is judged at the nearest border pixel: consistent only where the mask
+        # touches the border there (the object may continue out of frame), otherwise carved.
+        idx = np.flatnonzero(front)
+        ui = np.clip(uv[idx, 0], 0, w - 1).astype(int)
+        vi = np.clip(uv[idx, 1], 0, h - 1).astype(int)
+        d = v.dist_to_fg[vi, ui]
         r_px = v.K[0, 0] * radius / z[idx] + 0.75
         seen[idx] += 1
         hits[idx] += d <= r_px
-    keep = (seen >= cfg.min_views) & (hits >= np.ceil(cfg.consistency * seen - 1e-9))
+    need = max(cfg.min_views, int(np.ceil(cfg.min_seen * len(views) - 1e-9)))
+    keep = (seen >= need) & (hits >= np.ceil(cfg.consistency * seen - 1e-9))
     return keep.reshape(n, n, n)
 
 

@@ -50,7 +50,7 @@ def make_synthetic_work(
     width: int = 48,
     height: int = 32,
     seed: int = 0,
-    camera_distance: float = 0.9,
+    camera_distance: float = 1.3,
 ) -> tuple[WorkDir, Stage]:
     """Write WORK (root/work) and its raw-capture stub (root/capture): processed width x height frames."""
     import cv2

@@ -1,0 +1,168 @@
+"""Scene bounds and ray shards on a synthesized work directory (sphere object, nominal calibration)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from lightstage.calibration.record import Calibration
+from lightstage.cameras import pixel_rays
+from lightstage.capture.frames import read_exr
+from lightstage.capture.layout import FrameId, ViewId
+from lightstage.dataset.bounds import BoundsConfig, load_bounds, run_bounds
+from lightstage.dataset.fixtures import SPHERE_CENTRE, SPHERE_RADIUS, make_synthetic_work
+from lightstage.dataset.shards import (
+    RAY_DTYPE,
+    ShardConfig,
+    load_manifest,
+    run_shard,
+    verify_shards,
+    view_rays,
+)
+from lightstage.dataset.split import SplitConfig, load_split, run_split
+from lightstage.errors import LightstageError
+from lightstage.pipelines.cli import main
+from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND
+
+CFG = ShardConfig(rays_per_image=64, rays_per_shard=256, workers=1, border_px=4)
+
+
+@pytest.fixture(scope="module")
+def sharded(tmp_path_factory):
+    root = tmp_path_factory.mktemp("shards")
+    work, stage = make_synthetic_work(root)
+    run_split(work, SplitConfig("paper"), progress=False)
+    summary = run_shard(work, CFG, progress=False)
+    return work, stage, summary
+
+
+def _all_rays(work):
+    m = load_manifest(work.shards_dir)
+    return m, [np.load(work.shards_dir / s["file"]) for s in m["shards"]]
+
+
+def test_manifest_and_fixed_size_shards(sharded):
+    work, _, summary = sharded
+    m, shards = _all_rays(work)
+    assert summary["shards"] == len(shards) >= 2
+    assert all(len(s) == m["rays_per_shard"] == 256 for s in shards)
+    assert m["zone_counts"] == {
+        "foreground": 128 * len(shards),
+        "band": 96 * len(shards),
+        "background": 32 * len(shards),
+    }
+    for s, rec in zip(shards, m["shards"], strict=True):
+        assert s.dtype == RAY_DTYPE and RAY_DTYPE.itemsize == 64
+        # blocks: foreground | band | background
+        z = s["zone"]
+        assert (z[:128] == ZONE_FOREGROUND).all() and (z[128:224] == ZONE_BAND).all()
+        assert (z[224:] == ZONE_BACKGROUND).all()
+        assert rec["zones"] == {"foreground": 128, "band": 96, "background": 32}
+        assert len(set(s["view"].tolist())) > 1  # shuffled across images
+    assert 64 <= summary["bytes_per_ray"] < 70
+    n = m["normalization"]
+    assert n["scale"] > 0 and len(n["centre"]) == 3
+    assert json.loads(work.report("shard").read_text())["rays"] == m["rays"]
+
+
+def test_round_trip_rays_rederived_from_calibration(sharded):
+    work, stage, _ = sharded
+    m, shards = _all_rays(work)
+    calib = Calibration.load(work.calibration)
+    split = load_split(work.split)
+    train = set(split.train.frames())
+    rays = np.concatenate(shards)
+    views = [ViewId(*v.split("/")) for v in m["views"]]
+    border = 0
+    for v_idx in np.unique(rays["view"]):
+        v = views[v_idx]
+        cam = calib.views[v].camera()
+        sel = rays[rays["view"] == v_idx]
+        pix = sel["pixel"].astype(np.int64)
+        o, d = view_rays(cam.K, cam.R, cam.t, cam.dist, pix)
+        np.testing.assert_array_equal(sel["origin"], o)
+        np.testing.assert_array_equal(sel["direction"], d)
+        o2, d2 = pixel_rays(pix + 0.5, cam.K, cam.R, cam.t)  # the convention module, directly
+        np.testing.assert_array_equal(sel["direction"], d2.astype(np.float32))
+        np.testing.assert_array_equal(sel["origin"], o2.astype(np.float32))
+        lp = calib.light_positions[v.group][sel["light"]]
+        np.testing.assert_array_equal(sel["light_position"], lp.astype(np.float32))
+        ld = calib.light_directions(v.group)[sel["light"]]
+        np.testing.assert_array_equal(sel["light_direction"], ld.astype(np.float32))
+        import cv2
+
+        zones = cv2.imread(str(work.zones(v)), cv2.IMREAD_UNCHANGED)
+        mask = cv2.imread(str(work.mask(v)), cv2.IMREAD_UNCHANGED) > 0
+        for r in sel:
+            f = FrameId(v.group, v.camera, int(r["light"]))
+            assert f in train
+            i, j = (int(x) for x in r["pixel"])
+            if 0 <= i < cam.width and 0 <= j < cam.height:
+                img = read_exr(work.frame(f), channels="RGBS")
+                assert r["zone"] == zones[j, i]
+                want = img[j, i, :3] if mask[j, i] else np.zeros(3, np.float16)
+                np.testing.assert_array_equal(r["rgb"], want)
+                assert bool(r["saturated"]) == bool(mask[j, i] and img[j, i, 3] > 0.5)
+            else:
+                border += 1
+                assert r["zone"] == ZONE_BACKGROUND and not r["rgb"].any() and not r["saturated"]
+    assert border > 0  # the padded border outside the image is sampled
+
+
+def test_test_images_and_no_leak(sharded):
+    work, _, summary = sharded
+    split = load_split(work.split)
+    m, shards = _all_rays(work)
+    rays = np.concatenate(shards)
+    test_lights = split.test.lights()
+    assert not set(rays["light"].tolist()) & test_lights
+    assert not {m["views"][v].split("/")[1] for v in np.unique(rays["view"])} & split.test.cameras()
+    assert summary["test_images"] == split.test.count()
+    calib = Calibration.load(work.calibration)
+    for f in split.test.frames():
+        d = np.load(work.shards_dir / "test" / f"{f.group}_{f.camera}_{f.light:03d}.npz")
+        img = read_exr(work.frame(f), channels="RGBS")
+        np.testing.assert_array_equal(d["rgb"], img[..., :3])
+        cam = calib.views[ViewId(f.group, f.camera)].camera()
+        np.testing.assert_array_equal(d["K"], cam.K)
+        np.testing.assert_array_equal(d["R"], cam.R)
+        np.testing.assert_allclose(d["light_position"], calib.light_positions[f.group][f.light])
+
+
+def test_rerun_is_skipped_and_corruption_detected(sharded, tmp_path):
+    work, _, _ = sharded
+    assert run_shard(work, CFG, progress=False)["skipped"]
+    assert verify_shards(work.shards_dir) >= 2
+    copy = tmp_path / "shards"
+    shutil.copytree(work.shards_dir, copy)
+    m = load_manifest(copy)
+    path = copy / m["shards"][1]["file"]
+    data = bytearray(path.read_bytes())
+    data[-100] ^= 0x01
+    path.write_bytes(bytes(data))
+    with pytest.raises(LightstageError, match="checksum mismatch"):
+        verify_shards(copy)
+    path.write_bytes(bytes(data[:-64]))
+    with pytest.raises(LightstageError, match="truncated"):
+        verify_shards(copy)
+
+
+def test_cli_shard_and_bounds_errors(tmp_path, capsys):
+    assert main(["shard", str(tmp_path / "nowork")]) == 2
+    assert "split" in capsys.readouterr().err
+
+
+def test_bounds_contain_the_object_and_are_tight(tmp_path):
+    work, _ = make_synthetic_work(tmp_path, num_cameras=6, num_lights=1, num_groups=3)
+    s = run_bounds(work, BoundsConfig(resolution=48), progress=False)
+    b = load_bounds(work.bounds)
+    lo, hi = SPHERE_CENTRE - SPHERE_RADIUS, SPHERE_CENTRE + SPHERE_RADIUS
+    assert np.all(b.box_min <= lo + 1e-9) and np.all(b.box_max >= hi - 1e-9)
+    assert np.all(b.box_max - b.box_min < 2 * SPHERE_RADIUS * 1.6), (b.box_min, b.box_max)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    assert np.abs(b.normalize(corners)).max() <= 1.0 / 1.1 + 1e-9
+    assert s["views"] == 18
+    assert run_bounds(work, BoundsConfig(), progress=False)["skipped"]
