@@ -51,8 +51,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--work", type=Path, default=Path("demo-work"), help="work directory (default demo-work)"
     )
     demo.add_argument("--config", type=Path, help="pipeline config (default: built-in demo)")
-    demo.add_argument("--preset", help="simulator preset (default: the demo config's choice)")
-    demo.add_argument("--seed", type=int, default=0, help="simulator seed")
+    demo.add_argument("--preset", help="simulate this preset in full instead of the demo config's capture")
+    demo.add_argument("--seed", type=int, help="simulator seed (default: the demo config's)")
     demo.add_argument("--workers", type=int, help="worker processes of the local cluster")
     demo.add_argument("--scheduler", help="address of an existing dask scheduler")
     demo.add_argument("--no-progress", action="store_true", help="no progress bars")

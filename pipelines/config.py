@@ -20,7 +20,7 @@ from lightstage.errors import LightstageError
 from lightstage.pipelines.cluster import ClusterSettings
 from lightstage.pipelines.stages import STAGE_ORDER, StageImpl, available_stages, resolve_stage
 
-TOP_KEYS = ("capture", "work", "cluster", "launch", "entry_points", *STAGE_ORDER)
+TOP_KEYS = ("capture", "work", "cluster", "launch", "demo", "entry_points", *STAGE_ORDER)
 LAUNCHERS = ("local", "torchrun")
 
 
@@ -34,6 +34,18 @@ class LaunchSettings:
 
 
 @dataclass(frozen=True)
+class DemoSettings:
+    """What `lightstage demo` simulates: a simulator preset, seed and optional subsets (selector strings such
+    as "0-11" or "0,3,5"; empty = all) of groups, cameras and lights."""
+
+    preset: str = "small"
+    seed: int = 0
+    groups: str = ""
+    cameras: str = ""
+    lights: str = ""
+
+
+@dataclass(frozen=True)
 class PipelineConfig:
     """Everything one `lightstage run` needs; stage sections are raw mappings until resolved."""
 
@@ -41,6 +53,7 @@ class PipelineConfig:
     work: str | None = None
     cluster: ClusterSettings = field(default_factory=ClusterSettings)
     launch: LaunchSettings = field(default_factory=LaunchSettings)
+    demo: DemoSettings = field(default_factory=DemoSettings)
     entry_points: dict[str, str] = field(default_factory=dict)
     stages: dict[str, dict[str, Any]] = field(default_factory=lambda: {s: {} for s in STAGE_ORDER})
     source: str = "<defaults>"
@@ -74,6 +87,7 @@ class PipelineConfig:
             )
         if launch.nproc_per_node < 1:
             raise LightstageError(f"{source}: launch.nproc_per_node: expected an integer >= 1")
+        demo = _dataclass_from(DemoSettings, data.get("demo"), "demo", source)
         entry = data.get("entry_points") or {}
         if not isinstance(entry, dict) or not all(isinstance(v, str) for v in entry.values()):
             raise LightstageError(f"{source}: entry_points: expected a mapping of stage -> 'module:function'")
@@ -88,7 +102,7 @@ class PipelineConfig:
             if not isinstance(section, dict):
                 raise LightstageError(f"{source}: {name}: expected a mapping of parameters")
             stages[name] = dict(section)
-        return cls(capture, work, cluster, launch, dict(entry), stages, source)
+        return cls(capture, work, cluster, launch, demo, dict(entry), stages, source)
 
     def with_overrides(self, **changes: Any) -> PipelineConfig:
         """A copy with top-level fields replaced (None values are ignored)."""
@@ -119,6 +133,7 @@ class PipelineConfig:
             "work": self.work,
             "cluster": dataclasses.asdict(self.cluster),
             "launch": dataclasses.asdict(self.launch),
+            "demo": dataclasses.asdict(self.demo),
         }
         if self.entry_points:
             out["entry_points"] = dict(self.entry_points)
@@ -138,7 +153,7 @@ def config_as_data(config: Any) -> Any:
         config = dataclasses.asdict(config)
     elif hasattr(config, "to_dict"):
         config = config.to_dict()
-    return json.loads(json.dumps(config, default=_jsonable, sort_keys=True))
+    return json.loads(json.dumps(config, default=_jsonable))
 
 
 def _jsonable(obj: Any) -> Any:

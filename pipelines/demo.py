@@ -20,7 +20,6 @@ import numpy as np
 from lightstage.atomic import write_json_atomic, write_text_atomic
 from lightstage.workdir import WorkDir
 
-DEMO_PRESET = "small"
 ENVMAP_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "envmaps"
 RELIGHT_LIGHTS = "32"
 MAX_VIEWS_SHOWN = 6
@@ -31,14 +30,15 @@ def _say(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def simulate(work: WorkDir, preset: str, seed: int) -> Path:
-    """Simulate the demo capture into WORK/capture (skipped when a finished one with the same preset and seed
-    is there)."""
+def simulate(work: WorkDir, settings: Any, progress: bool = True) -> Path:
+    """Simulate the demo capture (config `demo:` section) into WORK/capture; skipped when a finished one with
+    the same settings is there."""
     from lightstage.capture.simulate import simulate_capture
 
     capture = work.root / "capture"
     marker = work.root / ".demo-capture.json"
-    wanted = {"preset": preset, "seed": seed}
+    wanted = dataclasses.asdict(settings)
+    preset, seed = settings.preset, settings.seed
     if marker.is_file() and json.loads(marker.read_text()) == wanted and (capture / "capture.yaml").is_file():
         _say(f"demo: reusing the simulated {preset!r} capture in {capture}")
         return capture
@@ -46,7 +46,15 @@ def simulate(work: WorkDir, preset: str, seed: int) -> Path:
         shutil.rmtree(capture)
     _say(f"demo: simulating the {preset!r} capture (seed {seed}) into {capture}")
     t0 = time.perf_counter()
-    simulate_capture(capture, preset=preset, seed=seed)
+    simulate_capture(
+        capture,
+        preset=preset,
+        seed=seed,
+        groups=settings.groups or None,
+        cameras=settings.cameras or None,
+        lights=settings.lights or None,
+        progress=progress,
+    )
     _say(f"demo: simulated in {time.perf_counter() - t0:.0f} s")
     write_json_atomic(marker, wanted)
     return capture
@@ -67,7 +75,7 @@ def run_demo(
     *,
     config_path: str | os.PathLike[str] | None = None,
     preset: str | None = None,
-    seed: int = 0,
+    seed: int | None = None,
     workers: int | None = None,
     scheduler: str | None = None,
     progress: bool = True,
@@ -79,16 +87,29 @@ def run_demo(
     work = WorkDir.at(Path(work_dir).resolve())
     work.root.mkdir(parents=True, exist_ok=True)
     config = demo_config(config_path, workers, scheduler)
-    capture = simulate(work, preset or DEMO_PRESET, seed)
+    settings = config.demo
+    if preset is not None or seed is not None:
+        settings = dataclasses.replace(
+            settings,
+            preset=preset or settings.preset,
+            seed=settings.seed if seed is None else seed,
+            **({"lights": "", "cameras": "", "groups": ""} if preset else {}),
+        )
+    capture = simulate(work, settings, progress)
     results = run_pipeline(work, config, capture=capture, progress=progress)
     timings = {r.stage: round(r.seconds, 1) for r in results}
     relit = relight(work, progress)
-    report = write_report(work, timings, relit, time.perf_counter() - t0, preset or DEMO_PRESET)
+    report = write_report(work, timings, relit, time.perf_counter() - t0, _describe(settings))
     _say(f"demo: finished in {time.perf_counter() - t0:.0f} s")
     print(f"demo report: {report}")
     print(f"  pictures:  {work.root / 'report'}")
     print(f"  stage reports: {work.root / 'reports'}; evaluation images: {work.eval_dir}")
     return report
+
+
+def _describe(settings: Any) -> str:
+    subsets = [f"{k} {getattr(settings, k)}" for k in ("groups", "cameras", "lights") if getattr(settings, k)]
+    return f"{settings.preset} (seed {settings.seed}" + (f"; {', '.join(subsets)}" if subsets else "") + ")"
 
 
 # ---- relighting ------------------------------------------------------------------------------------------
@@ -222,7 +243,7 @@ def write_report(
     lines = [
         "# lightstage demo report",
         "",
-        f"Simulated `{preset}` capture in `{work.root / 'capture'}`, processed in `{work.root}` "
+        f"Simulated capture `{preset}` in `{work.root / 'capture'}`, processed in `{work.root}` "
         f"in {seconds / 60:.1f} minutes on this machine. Per-stage records: `reports/<stage>.json`.",
         "",
         "## Stages",

@@ -35,6 +35,9 @@ class StageSpec:
     preferred_modules: tuple[str, ...]
     config_names: tuple[str, ...]
     outputs: Callable[[WorkDir], tuple[Path, ...]]
+    # An empty section passes config=None (the stage's own choice, e.g. eval's config stored with the
+    # checkpoint) instead of the config class's defaults.
+    none_when_empty: bool = False
 
     @property
     def function(self) -> str:
@@ -110,6 +113,7 @@ SPECS: dict[str, StageSpec] = {
             ("eval", "evaluate", "evaluation", "stage"),
             ("EvalConfig", "EvaluationConfig"),
             _outputs_eval,
+            none_when_empty=True,
         ),
     )
 }
@@ -129,11 +133,11 @@ class StageImpl:
     def make_config(self, section: dict[str, Any]) -> Any:
         """The stage's typed config from its YAML section (the stage's from_dict validates and names keys).
 
-        An empty section for an entry function whose `config` defaults to None gives None (the stage's own
-        default, e.g. eval's config stored with the checkpoint). A `config: NAME` key loads a named base config
+        An empty section gives None where the stage defines None as its own choice (eval: the config stored
+        with the checkpoint). A `config: NAME` key loads a named base config
         through the stage module's `load_config(name, overrides)` (e.g. train: {config: tiny})."""
         section = dict(section)
-        if not section and _config_default_is_none(self.run):
+        if not section and self.spec.none_when_empty and _config_default_is_none(self.run):
             return None
         if self.config_cls is None:
             if section:
