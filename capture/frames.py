@@ -445,6 +445,10 @@ def read_exr(
         f = OpenEXR.File(str(header.path), separate_channels=True)
         planes = f.parts[0].channels
         arrays = [planes[c].pixels for c in channels]
+    except (IndexError, KeyError):  # the bindings print the decoder's error and return no pixels
+        raise LightstageError(
+            f"{header.path}: corrupt EXR pixel data (chunks could not be decoded)"
+        ) from None
     except Exception as e:
         raise LightstageError(f"{header.path}: corrupt EXR pixel data ({_reason(e)})") from None
     dtypes = {a.dtype for a in arrays}

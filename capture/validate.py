@@ -236,7 +236,9 @@ class _Worker:
     """One decoder process, talking JSON lines over its stdin/stdout."""
 
     def __init__(self, command: Sequence[str], memory_limit_mb: int | None):
-        self.stderr = tempfile.TemporaryFile()
+        # append mode: the child always writes at the end, so reading with pread never moves its offset
+        self.stderr = tempfile.TemporaryFile(mode="a+b")
+        self.err_mark = 0
         env = dict(os.environ)
         if memory_limit_mb:
             env["LIGHTSTAGE_DECODER_MEMORY_MB"] = str(int(memory_limit_mb))
@@ -251,14 +253,24 @@ class _Worker:
     def send(self, key: Any, request: dict[str, Any], timeout_s: float) -> None:
         self.job = (key, request)
         self.deadline = time.monotonic() + timeout_s
+        self.err_mark = os.fstat(self.stderr.fileno()).st_size
         assert self.proc.stdin is not None
         self.proc.stdin.write((json.dumps(request) + "\n").encode())
         self.proc.stdin.flush()
 
     def stderr_tail(self) -> str:
-        self.stderr.seek(0)
-        lines = self.stderr.read().decode("utf-8", "replace").strip().splitlines()
+        """The last line the process wrote to stderr."""
+        lines = os.pread(self.stderr.fileno(), 1 << 16, 0).decode("utf-8", "replace").strip().splitlines()
         return lines[-1][:300] if lines else ""
+
+    def job_diagnostic(self) -> str:
+        """The decoder library's own error for the current job (what it printed to stderr), if any."""
+        fd = self.stderr.fileno()
+        n = os.fstat(fd).st_size - self.err_mark
+        text = os.pread(fd, min(n, 1 << 16), self.err_mark).decode("utf-8", "replace") if n > 0 else ""
+        lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+        useful = [ln for ln in lines if "EXR_ERR" in ln] or lines
+        return useful[0][:300] if useful else ""
 
     def stop(self, kill: bool = False) -> int:
         if kill and self.proc.poll() is None:
@@ -327,10 +339,14 @@ class DecoderPool:
             sel.unregister(w.proc.stdout)
             live.remove(w)
             tail = w.stderr_tail()
+            diagnostic = w.job_diagnostic() if w.job is not None else ""
             rc = w.stop(kill=kill)
             if w.job is not None:
                 key, req = w.job
-                on_result(key, {"status": "corrupt", "message": f"{req['path']}: {why or _death(rc)}"})
+                detail = f" [decoder: {diagnostic}]" if diagnostic and not why else ""
+                on_result(
+                    key, {"status": "corrupt", "message": f"{req['path']}: {why or _death(rc)}{detail}"}
+                )
             elif not w.ready:
                 start_failures += 1
                 if start_failures >= self.MAX_START_FAILURES:
@@ -373,6 +389,8 @@ class DecoderPool:
                             start_failures = 0
                         elif w.job is not None:
                             job_key, _req = w.job
+                            if reply.get("status") == "corrupt" and (detail := w.job_diagnostic()):
+                                reply["message"] = f"{reply.get('message', '')} [decoder: {detail}]"
                             w.job = None
                             on_result(job_key, reply)
                 now = time.monotonic()

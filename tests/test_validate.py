@@ -59,6 +59,7 @@ PLANTED = {
     "000/cam01/002": ("wrong_channels", "wrong_channels"),
     "180/cam00/000": ("unreadable", "unreadable"),
     "180/cam00/001": ("empty", "empty"),
+    "180/cam01/000": ("ok", "corrupt"),
 }
 
 
@@ -79,6 +80,12 @@ def plant_problems(root: Path) -> None:
     write_exr(frame(root, "000/cam01/002"), rng.random((H, W, 1)))  # Y only
     frame(root, "180/cam00/000").write_bytes(b"this is not an EXR file\n" * 20)
     frame(root, "180/cam00/001").write_bytes(b"")
+    # garbage inside the compressed pixel data: the header and chunk table stay intact
+    path = frame(root, "180/cam01/000")
+    data = bytearray(path.read_bytes())
+    i = int(len(data) * 0.7)
+    data[i : i + 40] = b"\xff" * 40
+    path.write_bytes(bytes(data))
 
 
 @pytest.fixture(scope="module")
@@ -141,6 +148,7 @@ def test_deep_scan_planted_problems_and_cli_exit_1(bad_capture, tmp_path, capsys
     for fid, (_, want) in PLANTED.items():
         assert frames_[fid]["status"] == want, frames_[fid]
     assert "NaN" in frames_["000/cam01/000"]["message"]
+    assert "corrupt EXR pixel data" in frames_["180/cam01/000"]["message"]
     ok = [f for f in frames_.values() if f["status"] == "ok"]
     assert ok and all(f["deep"] and f["saturated_fraction"] is not None for f in ok)
 
@@ -274,3 +282,51 @@ def test_run_validate_errors(tmp_path):
         ValidateConfig.from_dict({"workers": 0})
     with pytest.raises(LightstageError, match="max_bad_fraction"):
         ValidateConfig.from_dict({"max_bad_fraction": 2})
+
+
+def write_layouts(folder: Path) -> list[Path]:
+    """Valid EXRs of several layouts: scanline (3 compressions), float, tiled, multipart."""
+    import OpenEXR
+
+    rng = np.random.default_rng(5)
+    img = rng.random((37, 29, 3)).astype(np.float16)
+    paths = []
+    for comp in ("zip", "piz", "none"):
+        paths.append(folder / f"scan_{comp}.exr")
+        write_exr(paths[-1], img, compression=comp)
+    paths.append(folder / "float.exr")
+    write_exr(paths[-1], img, half=False)
+    tiles = OpenEXR.TileDescription()
+    tiles.xSize, tiles.ySize = 8, 16
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.tiledimage, "tiles": tiles}
+    paths.append(folder / "tiled.exr")
+    OpenEXR.File(header, {"RGB": np.ascontiguousarray(img)}).write(str(paths[-1]))
+    parts = [
+        OpenEXR.Part(
+            {"compression": OpenEXR.PIZ_COMPRESSION}, {"RGB": np.ascontiguousarray(img)}, name="rgb"
+        ),
+        OpenEXR.Part(
+            {"compression": OpenEXR.ZIP_COMPRESSION}, {"Z": np.ones((37, 29), np.float32)}, name="z"
+        ),
+    ]
+    paths.append(folder / "multipart.exr")
+    OpenEXR.File(parts).write(str(paths[-1]))
+    return paths
+
+
+def test_header_parser_on_valid_layouts_and_every_truncation(tmp_path):
+    from lightstage.capture.frames import read_exr, read_exr_header
+    from lightstage.capture.validate import check_header
+
+    for path in write_layouts(tmp_path):
+        header = read_exr_header(path)
+        assert header.chunk_problem is None, (path.name, header.chunk_problem)
+        assert (header.width, header.height) == (29, 37) and read_exr(path).shape == (37, 29, 3)
+        assert check_header("x", path, path.name, (29, 37)).status == "ok"
+        # a file cut anywhere is never reported usable by the header scan
+        data = path.read_bytes()
+        cut = tmp_path / "cut.exr"
+        for n in range(0, len(data), max(1, len(data) // 97)):
+            cut.write_bytes(data[:n])
+            rec = check_header("x", cut, "cut.exr", (29, 37))
+            assert rec.status in ("empty", "unreadable", "truncated"), (path.name, n, rec)
