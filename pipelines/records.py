@@ -22,7 +22,9 @@ from lightstage.workdir import WorkDir
 
 RECORD_KEY = "pipeline"
 RECORD_VERSION = 1
-CONTENT_HASH_LIMIT = 1 << 20  # files up to 1 MiB are fingerprinted by content, larger by size + mtime
+CONTENT_HASH_LIMIT = (
+    1 << 16
+)  # files up to 64 KiB (records, configs) by content; larger (images) by size + mtime
 
 
 @dataclass(frozen=True)

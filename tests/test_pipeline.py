@@ -233,3 +233,20 @@ def test_whole_run_killed_resumes_to_identical_outputs(tmp_path: Path) -> None:
     assert all(
         ".tmp" in p.name for p in leftovers
     )  # only hidden temporaries of killed writes, never partials
+
+
+@pytest.mark.slow
+def test_training_step_under_torchrun(tmp_path: Path, capture: Path, monkeypatch) -> None:
+    """launch.launcher: torchrun runs the train stage in torchrun's processes; the record is written as usual."""
+    torchrun = Path(sys.executable).with_name("torchrun")
+    if not torchrun.exists():
+        pytest.skip("torchrun not installed next to this Python")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
+    work = WorkDir.at(tmp_path / "work")
+    cfg = fake_config(launch={"launcher": "torchrun", "nproc_per_node": 2, "torchrun": str(torchrun)})
+    res = run_pipeline(work, cfg, capture=capture, progress=False, log=lambda m: None)
+    assert statuses(res)["train"] == "ran" and statuses(res)["eval"] == "ran"
+    assert read_record(work, "train")["summary"]["counts"] == {"steps": 3}
+    ref = WorkDir.at(tmp_path / "ref")
+    run_pipeline(ref, fake_config(), capture=capture, progress=False, log=lambda m: None)
+    assert outputs(work.root) == outputs(ref.root)
