@@ -226,6 +226,7 @@ def test_run_relight_writes_images_and_error_vs_all(tmp_path):
         RelightConfig.from_dict({"envmapp": "x"})
     with pytest.raises(LightstageError, match="rotate_deg"):
         RelightConfig.from_dict({"rotate_deg": "ten"})
+    assert RelightConfig.from_dict({"lights": 16, "cameras": ["orbit"]}).lights == 16
 
 
 def test_camera_and_light_specs(tmp_path):
@@ -251,6 +252,9 @@ def test_camera_and_light_specs(tmp_path):
         json.dumps({"K": K.tolist(), "R": R.tolist(), "t": t.tolist(), "width": 32, "height": 24})
     )
     np.testing.assert_allclose(parse_camera(str(tmp_path / "cam.json"), scene, model).camera.t, t)
+    (tmp_path / "cams").mkdir()
+    (tmp_path / "cams" / "c.json").write_text((tmp_path / "cam.json").read_text())
+    assert parse_camera(str(tmp_path / "cams" / "c.json"), scene, model).name == "c"
     for bad in ("000/cam99", "orbit:zoom=2", "K=1,2;R=1;t=0;size=3x3", "nonsense"):
         with pytest.raises(LightstageError):
             parse_camera(bad, scene, model)

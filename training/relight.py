@@ -147,7 +147,7 @@ class RelightConfig:
     """Options of `lightstage relight`."""
 
     envmap: str = ""
-    lights: str = "64"  # comma list of powers of two and/or 'all'
+    lights: str | int = "64"  # a power of two, or a comma list of powers of two and/or 'all'
     cameras: list[str] = field(default_factory=list)  # camera specs; empty: the first calibrated view
     resolution: str = "32x16"
     rotate_deg: float = 0.0

@@ -160,14 +160,14 @@ def parse_camera(spec: str, scene: SceneInfo, model: RelightableModel) -> NamedC
     `K=fx,fy,cx,cy;R=r11,...,r33;t=t1,t2,t3;size=WxH` (explicit OpenCV world-to-camera pose);
     or a JSON file with K (3x3), R (3x3), t (3), width, height and optional dist."""
     spec = spec.strip()
+    if spec.endswith(".json"):
+        return _json_camera(Path(spec))
     if re.fullmatch(r"[^/\s:;=]+/[^/\s:;=]+", spec):
         return _calibrated_camera(spec, scene)
     if spec == "orbit" or spec.startswith("orbit:"):
         return _orbit_spec(spec, model)
     if spec.startswith("K="):
         return _explicit_camera(spec)
-    if spec.endswith(".json"):
-        return _json_camera(Path(spec))
     raise LightstageError(
         f"camera spec {spec!r}: expected GROUP/CAMERA, orbit[:az=..,elev=..,dist=..,fov=..,size=WxH], "
         "K=..;R=..;t=..;size=WxH, or a .json file"
@@ -392,7 +392,8 @@ def run_render(
     centre = np.broadcast_to(np.asarray(model.centre, np.float64), (3,))
     n = max(1, config.orbit)
     frames = []
-    exposure = config.exposure
+    # the capture's exposure (stored with the checkpoint) when the model has one, so renders match previews
+    exposure = config.exposure if config.exposure is not None else getattr(model, "exposure", None)
     outputs: list[str] = []
     for k in tqdm(range(n), desc="render", disable=not progress or n == 1):
         cam = rotate_camera_about_z(camera, 360.0 * k / n, centre) if config.orbit else camera
