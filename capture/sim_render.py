@@ -129,17 +129,22 @@ def flare_image(
     return img.astype(np.float32), float(strength)
 
 
-def add_noise_and_clip(
-    img: np.ndarray, scene: SimScene, cutoff: float, rng: np.random.Generator
-) -> np.ndarray:
-    """Poisson-like shot noise + read noise (Gaussian approximation), ADC quantisation, then clip to
-    [0, cutoff] as float16 (clipped pixels store the smallest half >= cutoff)."""
+def add_noise_and_clip(img: np.ndarray, scene: SimScene, cutoff: float, normal: np.ndarray) -> np.ndarray:
+    """Poisson-like shot noise + read noise (Gaussian approximation, `normal`: standard normals, one per
+    value), ADC quantisation, then clip to [0, cutoff] as float16 (clipped pixels: smallest half >= cutoff)."""
     nz = scene.nuisances
-    sigma = np.sqrt(nz.shot_gain * np.maximum(img, 0) + nz.read_noise**2)
-    noisy = img + sigma * rng.standard_normal(img.shape, dtype=np.float32)
-    noisy = np.round(noisy * np.float32(1.0 / nz.adc_step)) * np.float32(nz.adc_step)
-    sat = saturation_value(cutoff)
-    return np.clip(noisy, 0.0, np.float32(sat)).astype(np.float16)
+    f = np.float32
+    x = np.maximum(img, 0)
+    x *= f(nz.shot_gain)
+    x += f(nz.read_noise**2)
+    np.sqrt(x, out=x)
+    x *= normal.reshape(img.shape)
+    x += img
+    x *= f(1.0 / nz.adc_step)
+    np.rint(x, out=x)
+    x *= f(nz.adc_step)
+    np.clip(x, 0.0, f(saturation_value(cutoff)), out=x)
+    return x.astype(np.float16)
 
 
 def render_view(job: ViewJob) -> ViewRecord:
@@ -156,15 +161,20 @@ def render_view(job: ViewJob) -> ViewRecord:
     bg[mask] = 0.0
     bulbs: dict[int, int] = {}
     flares: dict[int, float] = {}
+    # one seeded pool of standard normals per view; each frame reads a seeded random window of it
+    npix = cam.width * cam.height * 3
+    pool = np.random.default_rng([job.seed, 2, job.group_index, job.camera_index]).standard_normal(
+        2 * npix, dtype=np.float32
+    )
     for lid, sid, p in zip(job.light_ids, job.light_seed_ids, job.light_positions, strict=True):
         radiance = shade(scene, hits, p, scene.light_intensity)
-        clean = np.zeros((cam.height * cam.width, 3), np.float32)
-        clean[hits.index] = radiance
-        clean = clean.reshape(cam.height, cam.width, 3)
         if lid in job.clean_lights:
+            clean = np.zeros((cam.height * cam.width, 3), np.float32)
+            clean[hits.index] = radiance
             path = job.root / "ground_truth" / "clean" / job.group / job.camera / f"{lid:03d}.exr"
-            write_exr(path, clean, half=False, compression=job.compression)
-        img = clean + bg
+            write_exr(path, clean.reshape(cam.height, cam.width, 3), half=False, compression=job.compression)
+        img = bg.copy()
+        img.reshape(-1, 3)[hits.index] += radiance  # the background is 0 under the mask
         flare, strength = flare_image(scene, cam, p, scene.light_intensity)
         if flare is not None:
             img += flare
@@ -173,8 +183,8 @@ def render_view(job: ViewJob) -> ViewRecord:
         if bulb is not None:
             img[bulb[0], bulb[1]] = scene.nuisances.bulb_radiance
             bulbs[lid] = int(bulb[0].size)
-        rng = np.random.default_rng([job.seed, 2, job.group_index, job.camera_index, sid])
-        raw = add_noise_and_clip(img, scene, job.saturation, rng)
+        off = int(np.random.default_rng([job.seed, 3, job.group_index, job.camera_index, sid]).integers(npix))
+        raw = add_noise_and_clip(img, scene, job.saturation, pool[off : off + npix])
         path = job.root / job.path_template.format(group=job.group, camera=job.camera, light=lid)
         write_exr(path, raw, half=True, compression=job.compression, attributes=job.attributes)
     return ViewRecord(job.group, job.camera, int(mask.sum()), bulbs, flares, time.perf_counter() - start)

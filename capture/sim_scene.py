@@ -330,19 +330,45 @@ def first_hit(scene: SimScene, o: tuple, d: tuple) -> tuple[np.ndarray, np.ndarr
     return t, kind, prim
 
 
+def _scene_roi(
+    scene: SimScene, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int
+) -> tuple[int, int, int, int]:
+    """Pixel box (col0, col1, row0, row1) that contains the projection of the object and stand bounding boxes
+    (the whole image if any corner is behind the camera); rays outside it cannot hit anything."""
+    lo, hi = scene.bounding_box()
+    st = scene.stand
+    slo = [st.centre_xy[0] - st.radius, st.centre_xy[1] - st.radius, st.z_min]
+    shi = [st.centre_xy[0] + st.radius, st.centre_xy[1] + st.radius, st.z_max]
+    corners = []
+    for a, b in ((lo, hi), (slo, shi)):
+        for k in range(8):
+            corners.append([(b if k >> i & 1 else a)[i] for i in range(3)])
+    pc = np.asarray(corners) @ np.asarray(R).T + np.asarray(t)
+    if (pc[:, 2] <= 1e-6).any():
+        return 0, width, 0, height
+    uv = pc @ np.asarray(K).T
+    uv = uv[:, :2] / uv[:, 2:]
+    c0 = int(np.clip(np.floor(uv[:, 0].min()) - 2, 0, width))
+    c1 = int(np.clip(np.ceil(uv[:, 0].max()) + 2, 0, width))
+    r0 = int(np.clip(np.floor(uv[:, 1].min()) - 2, 0, height))
+    r1 = int(np.clip(np.ceil(uv[:, 1].max()) + 2, 0, height))
+    return c0, c1, r0, r1
+
+
 def cast_view(
     scene: SimScene, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int
 ) -> ViewHits:
     """Ray-cast every pixel centre of a view once (in row bands) and gather surface data of the hits."""
     tex = SolidTexture(scene.texture_seed)
     mat = scene.material
-    rows_per_band = max(1, BAND_PIXELS // width)
+    c0, c1, row0, row1 = _scene_roi(scene, K, R, t, width, height)
+    rows_per_band = max(1, BAND_PIXELS // max(c1 - c0, 1))
     parts: dict[str, list[np.ndarray]] = {
         k: [] for k in ("index", "kind", "pos", "normal", "view", "prim", "depth")
     }
-    for r0 in range(0, height, rows_per_band):
-        r1 = min(height, r0 + rows_per_band)
-        jj, ii = np.meshgrid(np.arange(r0, r1), np.arange(width), indexing="ij")
+    for r0 in range(row0, row1, rows_per_band):
+        r1 = min(row1, r0 + rows_per_band)
+        jj, ii = np.meshgrid(np.arange(r0, r1), np.arange(c0, c1), indexing="ij")
         uv = np.stack([ii.ravel() + 0.5, jj.ravel() + 0.5], axis=-1)
         origins, dirs = pixel_rays(uv, K, R, t)
         o = (origins[:, 0], origins[:, 1], origins[:, 2])
@@ -404,71 +430,159 @@ def cast_view(
 
 
 # ---- shading -----------------------------------------------------------------------------------------
+class _Prepared:
+    """Light-independent per-view arrays for fast shading: float32 components, per-primitive offsets."""
+
+    def __init__(self, scene: SimScene, hits: ViewHits, sel: np.ndarray):
+        f = np.float32
+        self.sel = sel
+        self.p = tuple(np.ascontiguousarray(hits.pos[sel, i], f) for i in range(3))
+        self.n = tuple(np.ascontiguousarray(hits.normal[sel, i], f) for i in range(3))
+        self.v = tuple(np.ascontiguousarray(hits.view[sel, i], f) for i in range(3))
+        self.albedo = hits.albedo[sel]
+        self.ell = [_EllipsoidOrigin(e, self.p) for e in scene.body]
+        self.core = _EllipsoidOrigin(scene.core, self.p)
+        st = scene.stand
+        self.sx = self.p[0] - f(st.centre_xy[0])
+        self.sy = self.p[1] - f(st.centre_xy[1])
+        self.scc = self.sx * self.sx + self.sy * self.sy - f(st.radius**2)
+        self.sz = (f(st.z_min) - self.p[2], f(st.z_max) - self.p[2])
+
+
+class _EllipsoidOrigin:
+    """An ellipsoid with the ray origins (surface points) already in its unit-sphere frame."""
+
+    def __init__(self, e: Ellipsoid, p: tuple):
+        f = np.float32
+        self.inv_r = tuple(f(1.0 / r) for r in e.radii)
+        self.q = tuple((p[i] - f(e.centre[i])) * self.inv_r[i] for i in range(3))
+        self.c = self.q[0] * self.q[0] + self.q[1] * self.q[1] + self.q[2] * self.q[2] - f(1.0)
+
+    def interval(self, d: tuple) -> tuple[np.ndarray, np.ndarray]:
+        """(t_enter, t_exit) along unit directions d; t_enter = t_exit = 0 where the ray misses."""
+        dx, dy, dz = (d[i] * self.inv_r[i] for i in range(3))
+        a = dx * dx + dy * dy + dz * dz
+        b = self.q[0] * dx + self.q[1] * dy + self.q[2] * dz
+        disc = b * b - a * self.c
+        miss = disc <= 0
+        np.maximum(disc, 0, out=disc)
+        s = np.sqrt(disc)
+        inv_a = 1.0 / a
+        t0, t1 = (-b - s) * inv_a, (-b + s) * inv_a
+        t0[miss] = 0
+        t1[miss] = 0
+        return t0, t1
+
+
+def _positive_union_length(intervals: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """Length of the union of intervals within t > 0 (inclusion-exclusion), and the farthest exit."""
+    clipped = [(np.maximum(a, 0), np.maximum(b, 0)) for a, b in intervals]
+    total = np.zeros_like(clipped[0][0])
+    k = len(clipped)
+    for mask in range(1, 1 << k):
+        members = [clipped[i] for i in range(k) if mask >> i & 1]
+        lo = members[0][0]
+        hi = members[0][1]
+        for a, b in members[1:]:
+            lo = np.maximum(lo, a)
+            hi = np.minimum(hi, b)
+        part = np.maximum(hi - lo, 0)
+        if len(members) % 2:
+            total += part
+        else:
+            total -= part
+    far = clipped[0][1]
+    for _a, b in clipped[1:]:
+        far = np.maximum(far, b)
+    return np.maximum(total, 0), far
+
+
+def _prepared(scene: SimScene, hits: ViewHits) -> tuple[_Prepared, _Prepared]:
+    cache = getattr(hits, "_prep", None)
+    if cache is None or cache[0] is not scene:
+        obj = np.nonzero(hits.kind == KIND_OBJECT)[0]
+        st = np.nonzero(hits.kind == KIND_STAND)[0]
+        cache = (scene, _Prepared(scene, hits, obj), _Prepared(scene, hits, st))
+        hits._prep = cache
+    return cache[1], cache[2]
+
+
 def shade(
     scene: SimScene, hits: ViewHits, light_pos: np.ndarray, intensity: np.ndarray | float
 ) -> np.ndarray:
     """(N, 3) float32 radiance of the hit points under one point light (linear in `intensity`, RGB or scalar)."""
     mat = scene.material
-    inten = np.broadcast_to(np.asarray(intensity, np.float32), (3,))
-    p = hits.pos
-    L = np.asarray(light_pos, np.float64)[None, :] - p
-    r2 = np.einsum("ij,ij->i", L, L)
-    ldir = (L / np.sqrt(r2)[:, None]).astype(np.float32)
-    E = (1.0 / r2).astype(np.float32)  # irradiance per unit intensity at normal incidence
-    n, v = hits.normal, hits.view
-    ndl = np.einsum("ij,ij->i", n, ldir)
-    h = ldir + v
-    h /= np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-12)
-    ndh = np.maximum(np.einsum("ij,ij->i", n, h), 0)
-    o = (p[:, 0], p[:, 1], p[:, 2])
-    d = (ldir[:, 0].astype(np.float64), ldir[:, 1].astype(np.float64), ldir[:, 2].astype(np.float64))
-    out = np.zeros((len(p), 3), np.float32)
-
-    obj = hits.kind == KIND_OBJECT
-    if obj.any():
-        oo = tuple(c[obj] for c in o)
-        do = tuple(c[obj] for c in d)
-        # the opaque stand blocks light (start slightly off the surface to avoid self-hits)
-        sa, sb, sh, _ = cylinder_interval(scene.stand, oo, do)
-        vis = ~(sh & (sb > 1e-6))
-        # distance travelled inside the wax towards the light, and where the light enters it
-        intervals = [ellipsoid_interval(e, oo, do) for e in scene.body]
-        thick, far = union_length(intervals)
-        ca, cb, ch = ellipsoid_interval(scene.core, oo, do)
-        core_shadow = _core_shadow(ca, cb, ch, mat.core_opacity)
-        entry = tuple(oo[i] + far * do[i] for i in range(3))
-        ne = _union_normal(scene, entry)
-        ne_dot = np.maximum(ne[0] * do[0] + ne[1] * do[1] + ne[2] * do[2], 0).astype(np.float32)
-        trans = np.exp(-np.outer(thick, np.asarray(mat.sigma_tr))).astype(np.float32)
-        trans *= (ne_dot * core_shadow)[:, None] / np.pi
-        ndl_o = ndl[obj]
-        wrap = np.maximum(ndl_o + mat.wrap, 0) / (np.pi * (1.0 + mat.wrap) ** 2)
-        spec = (
-            mat.ks * (mat.shininess + 8.0) / (8.0 * np.pi) * ndh[obj] ** mat.shininess * np.maximum(ndl_o, 0)
-        )
-        diffuse = (mat.kd * wrap)[:, None] + mat.kt * trans
-        rad = diffuse * hits.albedo[obj] + spec[:, None]
-        out[obj] = rad * (E[obj] * vis)[:, None]
-
-    st = hits.kind == KIND_STAND
-    if st.any():
-        os_ = tuple(c[st] for c in o)
-        ds_ = tuple(c[st] for c in d)
-        thick, _ = union_length([ellipsoid_interval(e, os_, ds_) for e in scene.body])
-        ca, cb, ch = ellipsoid_interval(scene.core, os_, ds_)
-        shadow = np.exp(-mat.sigma_shadow * thick) * _core_shadow(ca, cb, ch, 1.0)
-        ndl_s = np.maximum(ndl[st], 0)
-        spec = mat.stand_ks * (40.0 + 8.0) / (8.0 * np.pi) * ndh[st] ** 40.0 * ndl_s
-        rad = hits.albedo[st] * (ndl_s / np.pi)[:, None] + spec[:, None]
-        out[st] = rad * (E[st] * shadow)[:, None]
+    f = np.float32
+    inten = np.broadcast_to(np.asarray(intensity, f), (3,))
+    lp = np.asarray(light_pos, np.float64)
+    obj, st = _prepared(scene, hits)
+    out = np.zeros((len(hits.index), 3), f)
+    for prep, is_obj in ((obj, True), (st, False)):
+        if prep.sel.size == 0:
+            continue
+        L = [f(lp[i]) - prep.p[i] for i in range(3)]
+        r2 = L[0] * L[0] + L[1] * L[1] + L[2] * L[2]
+        inv_r = 1.0 / np.sqrt(r2)
+        d = tuple(c * inv_r for c in L)
+        E = inv_r * inv_r  # irradiance per unit intensity at normal incidence (inverse square)
+        n, v = prep.n, prep.v
+        ndl = n[0] * d[0] + n[1] * d[1] + n[2] * d[2]
+        h = [d[i] + v[i] for i in range(3)]
+        hn = 1.0 / np.maximum(np.sqrt(h[0] * h[0] + h[1] * h[1] + h[2] * h[2]), f(1e-12))
+        ndh = np.maximum((n[0] * h[0] + n[1] * h[1] + n[2] * h[2]) * hn, 0)
+        intervals = [e.interval(d) for e in prep.ell]
+        thick, far = _positive_union_length(intervals)
+        ca, cb = prep.core.interval(d)
+        if is_obj:
+            vis = _stand_free(scene.stand, prep, d)
+            # the light enters the wax at the farthest exit along the ray: weight by its cosine there
+            entry = tuple(prep.p[i] + far * d[i] for i in range(3))
+            ne = _union_normal(scene, entry)
+            ne_dot = np.maximum(ne[0] * d[0] + ne[1] * d[1] + ne[2] * d[2], 0)
+            core_pass = _core_shadow(ca, cb, mat.core_opacity)
+            sig = np.asarray(mat.sigma_tr, f)
+            trans = np.exp(-thick[:, None] * sig[None, :])
+            trans *= (ne_dot * core_pass * f(mat.kt / np.pi))[:, None]
+            wrap = np.maximum(ndl + f(mat.wrap), 0) * f(mat.kd / (np.pi * (1.0 + mat.wrap) ** 2))
+            spec = f(mat.ks * (mat.shininess + 8.0) / (8.0 * np.pi)) * ndh ** f(mat.shininess)
+            spec *= np.maximum(ndl, 0)
+            trans += wrap[:, None]
+            rad = trans * prep.albedo
+            rad += spec[:, None]
+            rad *= (E * vis)[:, None]
+        else:
+            shadow = np.exp(-f(mat.sigma_shadow) * thick) * _core_shadow(ca, cb, 1.0)
+            ndl_s = np.maximum(ndl, 0)
+            spec = f(mat.stand_ks * (40.0 + 8.0) / (8.0 * np.pi)) * ndh**40 * ndl_s
+            rad = prep.albedo * (ndl_s * f(1.0 / np.pi))[:, None]
+            rad += spec[:, None]
+            rad *= (E * shadow)[:, None]
+        out[prep.sel] = rad
     return out * inten[None, :]
 
 
-def _core_shadow(a: np.ndarray, b: np.ndarray, hit: np.ndarray, opacity: float) -> np.ndarray:
+def _stand_free(stand: Cylinder, prep: _Prepared, d: tuple) -> np.ndarray:
+    """1 where the ray from the surface point towards the light misses the opaque stand, else 0."""
+    f = np.float32
+    dx, dy, dz = d
+    a = np.maximum(dx * dx + dy * dy, f(1e-12))
+    b = prep.sx * dx + prep.sy * dy
+    disc = b * b - a * prep.scc
+    s = np.sqrt(np.maximum(disc, 0))
+    t0, t1 = (-b - s) / a, (-b + s) / a
+    safe = np.where(np.abs(dz) > 1e-9, dz, f(1e-9))
+    za, zb = prep.sz[0] / safe, prep.sz[1] / safe
+    enter = np.maximum(t0, np.minimum(za, zb))
+    exit_ = np.minimum(t1, np.maximum(za, zb))
+    blocked = (disc > 0) & (enter < exit_) & (exit_ > 1e-5)
+    return (~blocked).astype(f)
+
+
+def _core_shadow(a: np.ndarray, b: np.ndarray, opacity: float) -> np.ndarray:
     """Fraction of diffused light passing the opaque core along a light ray: soft (diffusion blurs its shadow),
-    darkest where the ray's chord through the core is long."""
-    chord = np.where(hit, np.maximum(b, 0) - np.maximum(a, 0), 0)
-    return (1.0 - opacity * (1.0 - np.exp(-chord / 0.012))).astype(np.float32)
+    darkest where the ray's chord through the core is long (a = b where the ray misses)."""
+    chord = np.maximum(b, 0) - np.maximum(a, 0)
+    return 1.0 - np.float32(opacity) * (1.0 - np.exp(chord * np.float32(-1.0 / 0.012)))
 
 
 def _union_normal(scene: SimScene, p: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

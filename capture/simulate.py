@@ -52,6 +52,7 @@ class SimPreset:
     height: int
     clean_lights: int = 4  # lights (spread over the sphere) rendered clean for every view
     requires_selection: bool = False  # `paper`: too big to simulate whole
+    camera_distance: float | None = None  # metres from the centre; None: on the light sphere (1.5 m)
 
     @property
     def num_frames(self) -> int:
@@ -59,8 +60,8 @@ class SimPreset:
 
 
 SIM_PRESETS: dict[str, SimPreset] = {
-    "tiny": SimPreset("tiny", 9, 4, 12, 256, 172, clean_lights=3),
-    "small": SimPreset("small", 9, 20, 36, 1024, 684, clean_lights=4),
+    "tiny": SimPreset("tiny", 9, 4, 12, 256, 172, clean_lights=3, camera_distance=1.1),
+    "small": SimPreset("small", 9, 20, 32, 768, 512, clean_lights=4, camera_distance=1.1),
     "paper": SimPreset("paper", 9, 20, 331, *PAPER_RESOLUTION, clean_lights=2, requires_selection=True),
 }
 
