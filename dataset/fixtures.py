@@ -98,3 +98,55 @@ def make_synthetic_work(
             rgb[sat > 0] = stage.saturation
             write_exr(work.frame(FrameId(v.group, v.camera, lt)), np.dstack([rgb, sat]), channels="RGBS")
     return work, stage
+
+
+def write_random_shards(root: str | Path, num_shards: int, rays_per_shard: int, seed: int = 0) -> Path:
+    """Shards of random (valid-looking) rays with a real manifest, for loader benchmarks: root/shards."""
+    import json
+
+    from lightstage.atomic import write_json_atomic
+    from lightstage.dataset.shards import (
+        COMPOSITION,
+        MANIFEST,
+        RAY_DTYPE,
+        SHARD_FORMAT_VERSION,
+        ZONE_NAMES,
+        ZONES,
+        file_sha256,
+    )
+
+    out = Path(root) / "shards"
+    (out / "train").mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    per = [rays_per_shard // 8 * c for c in COMPOSITION]
+    records = []
+    for s in range(num_shards):
+        a = np.zeros(rays_per_shard, RAY_DTYPE)
+        for name in ("origin", "direction", "light_position", "light_direction"):
+            a[name] = rng.standard_normal((rays_per_shard, 3), dtype=np.float32)
+        a["rgb"] = rng.random((rays_per_shard, 3), dtype=np.float32)
+        a["zone"] = np.repeat(np.array(ZONES, np.uint8), per)
+        path = out / "train" / f"shard_{s:05d}.npy"
+        np.save(path, a)
+        records.append(
+            {
+                "file": f"train/{path.name}",
+                "rays": rays_per_shard,
+                "zones": {ZONE_NAMES[z]: n for z, n in zip(ZONES, per, strict=True)},
+                "sha256": file_sha256(path),
+                "bytes": path.stat().st_size,
+            }
+        )
+    write_json_atomic(
+        out / MANIFEST,
+        {
+            "format_version": SHARD_FORMAT_VERSION,
+            "dtype": {"descr": str(RAY_DTYPE.descr), "itemsize": RAY_DTYPE.itemsize},
+            "rays": num_shards * rays_per_shard,
+            "rays_per_shard": rays_per_shard,
+            "normalization": {"centre": [0.0, 0.0, 0.0], "scale": 1.0},
+            "shards": records,
+            "note": json.dumps({"synthetic": True}),
+        },
+    )
+    return out

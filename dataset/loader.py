@@ -171,16 +171,26 @@ class RayShardDataset(IterableDataset):
 
     def to_tensors(self, rec: np.ndarray) -> dict[str, torch.Tensor]:
         """Structured rays -> the batch dict of float32 / bool / uint8 tensors."""
-        raw = rec.view(np.uint8).reshape(len(rec), RAY_DTYPE.itemsize)
-        f32 = torch.from_numpy(raw[:, :48].view(np.float32))
+        n = len(rec)
+        raw = rec.view(np.uint8).reshape(n, RAY_DTYPE.itemsize)
+        f32 = raw[:, :48].view(np.float32)
+        # Two storages per batch (float32 and uint8), each field a contiguous view: one shared-memory
+        # segment each when a DataLoader worker hands the batch over.
+        floats = torch.empty((5, n, 3), dtype=torch.float32)
+        fl = floats.numpy()
+        for i in range(4):
+            fl[i] = f32[:, 3 * i : 3 * i + 3]
+        fl[4] = raw[:, 48:54].view(np.float16)
+        flags = torch.empty((2, n), dtype=torch.uint8)
+        flags.numpy()[:] = raw[:, 54:56].T
         batch = {
-            "origins": f32[:, 0:3].contiguous(),
-            "directions": f32[:, 3:6].contiguous(),
-            "light_positions": f32[:, 6:9].contiguous(),
-            "light_directions": f32[:, 9:12].contiguous(),
-            "rgb": torch.from_numpy(raw[:, 48:54].copy().view(np.float16)).float(),
-            "saturated": torch.from_numpy(raw[:, 54].copy()).bool(),
-            "zone": torch.from_numpy(raw[:, 55].copy()),
+            "origins": floats[0],
+            "directions": floats[1],
+            "light_positions": floats[2],
+            "light_directions": floats[3],
+            "rgb": floats[4],
+            "saturated": flags[0].view(torch.bool),
+            "zone": flags[1],
         }
         if self.normalize:
             c = torch.tensor(self.normalization["centre"], dtype=torch.float32)

@@ -156,11 +156,17 @@ def read_zones(path: Path) -> np.ndarray:
     return np.where(z < 64, ZONE_BACKGROUND, np.where(z < 192, ZONE_BAND, ZONE_FOREGROUND)).astype(np.uint8)
 
 
-def read_frame(path: Path, size: tuple[int, int]) -> np.ndarray:
-    """A processed frame (H, W, 4) float16: R, G, B and S (1 = saturated)."""
-    from lightstage.capture.frames import read_exr
+def read_frame(path: Path, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """A processed frame: ((H, W, 3) float16 RGB as stored, (H, W) bool saturated), through preprocess's
+    reader when it is installed, else capture.frames.read_exr on channels R, G, B, S."""
+    try:
+        from lightstage.preprocess.processed import read_processed_half
+    except ImportError:
+        from lightstage.capture.frames import read_exr
 
-    return read_exr(path, expected_size=size, channels="RGBS")
+        img = read_exr(path, expected_size=size, channels="RGBS")
+        return img[..., :3].astype(np.float16), img[..., 3] > 0.5
+    return read_processed_half(path, size)
 
 
 # ---- phase A: one training view -> one chunk ---------------------------------------------------------
@@ -231,7 +237,7 @@ def write_view_chunk(task: ViewTask) -> dict[str, Any]:
     ld = np.array(task.light_directions, np.float32).reshape(-1, 3)
     for k, light in enumerate(task.lights):
         frame = FrameId(task.group, task.camera, light)
-        img = read_frame(work.frame(frame), (W, H))
+        img_rgb, img_sat = read_frame(work.frame(frame), (W, H))
         rng = np.random.default_rng([cfg.seed, task.index, light])
         for z in ZONES:
             if z == ZONE_BACKGROUND:
@@ -257,12 +263,11 @@ def write_view_chunk(task: ViewTask) -> dict[str, Any]:
             rec["light_direction"] = ld[k]
             inside = (pix[:, 0] >= 0) & (pix[:, 0] < W) & (pix[:, 1] >= 0) & (pix[:, 1] < H)
             ii, jj = pix[inside, 0], pix[inside, 1]
-            vals = img[jj, ii]
             keep = keep_value[jj, ii]
             rgb = np.zeros((len(pix), 3), np.float16)
-            rgb[inside] = np.where(keep[:, None], vals[:, :3], 0)
+            rgb[inside] = np.where(keep[:, None], img_rgb[jj, ii], 0)
             sat = np.zeros(len(pix), np.uint8)
-            sat[inside] = (vals[:, 3] > 0.5) & keep
+            sat[inside] = img_sat[jj, ii] & keep
             rec["rgb"], rec["saturated"], rec["zone"] = rgb, sat, z
             rec["view"], rec["light"], rec["pixel"] = task.index, light, pix
             blocks[z].append(rec)
@@ -406,7 +411,9 @@ def write_test_image(task: TestTask) -> dict[str, Any]:
     if not path.is_file():
         work = WorkDir.at(task.work)
         view = ViewId(task.group, task.camera)
-        img = read_frame(work.frame(FrameId(task.group, task.camera, task.light)), (task.width, task.height))
+        rgb, sat = read_frame(
+            work.frame(FrameId(task.group, task.camera, task.light)), (task.width, task.height)
+        )
         zones_p, mask_p = work.zones(view), work.mask(view)
         zones = read_zones(zones_p) if zones_p.is_file() else np.zeros((task.height, task.width), np.uint8)
         if mask_p.is_file():
@@ -416,8 +423,8 @@ def write_test_image(task: TestTask) -> dict[str, Any]:
         else:
             mask = zones == ZONE_FOREGROUND
         arrays = {
-            "rgb": np.ascontiguousarray(img[..., :3]),
-            "saturated": img[..., 3] > 0.5,
+            "rgb": np.ascontiguousarray(rgb),
+            "saturated": sat,
             "mask": mask,
             "zones": zones,
             "K": np.array(task.K),

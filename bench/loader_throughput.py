@@ -1,0 +1,92 @@
+"""Loader throughput and memory: rays/s of RayShardDataset from the page cache (single process and with
+DataLoader workers), and peak RSS against dataset size. Run: python bench/loader_throughput.py [--shards N]."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def throughput(shards: Path, batch_size: int, workers: int, verify: str, seconds: float = 8.0) -> dict:
+    """Rays per second over whole epochs (at least `seconds` of work), page cache warm."""
+    import torch
+
+    from lightstage.dataset.loader import RayLoader, RayShardDataset
+
+    torch.set_num_threads(1)
+    ds = RayShardDataset(shards, batch_size=batch_size, verify=verify)
+    loader = RayLoader(ds, num_workers=workers)
+    rays = 0
+    t0 = time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        for b in loader:
+            rays += b["origins"].shape[0]
+    dt = time.perf_counter() - t0
+    cores = max(1, workers)
+    return {
+        "batch_size": batch_size,
+        "workers": workers,
+        "verify": verify,
+        "rays": rays,
+        "seconds": round(dt, 2),
+        "rays_per_s": round(rays / dt),
+        "rays_per_s_per_core": round(rays / dt / cores),
+    }
+
+
+def peak_rss_child(shards: Path, batch_size: int) -> int:
+    """Peak RSS (kB) of a fresh process that reads one full epoch."""
+    code = (
+        "import sys;from lightstage.dataset.loader import RayShardDataset\n"
+        f"ds=RayShardDataset({str(shards)!r}, batch_size={batch_size}, verify='open')\n"
+        "n=sum(b['origins'].shape[0] for b in ds)\n"
+        "print([l for l in open('/proc/self/status') if l.startswith('VmHWM')][0].split()[1])\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return int(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--shards", type=int, default=8, help="shards of --rays-per-shard rays")
+    ap.add_argument("--rays-per-shard", type=int, default=1 << 20)
+    ap.add_argument("--seconds", type=float, default=8.0)
+    ap.add_argument("--out", type=Path, default=None, help="write results as JSON here")
+    args = ap.parse_args()
+
+    from lightstage.dataset.fixtures import write_random_shards
+
+    results: dict = {"cpu_count": os.cpu_count(), "load_average": os.getloadavg(), "runs": [], "memory": []}
+    with tempfile.TemporaryDirectory(prefix="loader-bench-") as tmp:
+        shards = write_random_shards(tmp, args.shards, args.rays_per_shard)
+        size = sum(p.stat().st_size for p in (shards / "train").glob("*.npy"))
+        results["dataset"] = {"shards": args.shards, "rays": args.shards * args.rays_per_shard, "bytes": size}
+        for p in (shards / "train").glob("*.npy"):  # warm the page cache
+            p.read_bytes()
+        for bs, workers, verify in (
+            (8192, 0, "never"),
+            (65536, 0, "never"),
+            (65536, 0, "open"),
+            (65536, 2, "never"),
+        ):
+            r = throughput(shards, bs, workers, verify, args.seconds)
+            results["runs"].append(r)
+            print(json.dumps(r), flush=True)
+        small = write_random_shards(Path(tmp) / "small", 2, args.rays_per_shard, seed=1)
+        for n, path in ((2, small), (args.shards, shards)):
+            rss = peak_rss_child(path, 65536)
+            results["memory"].append({"shards": n, "peak_rss_kB": rss})
+            print(json.dumps(results["memory"][-1]), flush=True)
+    results["load_average_after"] = os.getloadavg()
+    if args.out:
+        args.out.write_text(json.dumps(results, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
