@@ -21,7 +21,7 @@ from lightstage.atomic import write_json_atomic, write_text_atomic
 from lightstage.workdir import WorkDir
 
 ENVMAP_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "envmaps"
-RELIGHT_LIGHTS = "32"
+RELIGHT_LIGHTS = "16"
 MAX_VIEWS_SHOWN = 6
 MAX_PREDICTIONS_SHOWN = 4
 
