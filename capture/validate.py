@@ -362,9 +362,15 @@ class DecoderPool:
             spawn()
         try:
             while live:
-                for w in live:
+                for w in list(live):
                     if w.ready and w.job is None and pending:
-                        w.send(*pending.popleft(), self.timeout_s)
+                        job = pending.popleft()
+                        try:
+                            w.send(*job, self.timeout_s)
+                        except OSError:  # died while idle: not this file's fault, give it to another
+                            w.job = None
+                            pending.appendleft(job)
+                            retire(w, kill=True, why=None)
                 idle = [w for w in live if w.ready and w.job is None]
                 if not pending and len(idle) == len(live):
                     break
@@ -620,10 +626,13 @@ def write_outputs(
         ) from None
 
 
-def load_manifest_records(path: Path) -> dict[str, FrameRecord]:
-    """Records of an earlier manifest by frame id ({} when absent or unreadable)."""
+def load_manifest_records(path: Path, capture_root: Path) -> dict[str, FrameRecord]:
+    """Records of an earlier manifest of the same capture, by frame id ({} when absent, unreadable or of
+    another capture)."""
     try:
         data = json.loads(Path(path).read_text())
+        if data.get("capture") != str(Path(capture_root).resolve()):
+            return {}
         return {d["id"]: FrameRecord.from_dict(d) for d in data.get("frames", [])}
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return {}
@@ -644,7 +653,7 @@ def validate_capture(
     """
     capture = open_capture(root)
     out = Path(out_dir) if out_dir is not None else capture.root / "validation"
-    reuse = load_manifest_records(out / "manifest.json") if deep else None
+    reuse = load_manifest_records(out / "manifest.json", capture.root) if deep else None
     result = scan_capture(
         capture, deep=deep, workers=workers, timeout_s=timeout_s, progress=progress, reuse=reuse
     )
@@ -722,7 +731,7 @@ def run_validate(
     are unchanged; header checks always run again (they are cheap and the capture may have been repaired).
     """
     capture = open_capture(read_capture_pointer(work))
-    reuse = load_manifest_records(work.manifest) if config.deep else None
+    reuse = load_manifest_records(work.manifest, capture.root) if config.deep else None
     result = scan_capture(
         capture,
         deep=config.deep,
