@@ -118,7 +118,7 @@ def psnr_tonemapped(pred: np.ndarray, ref: np.ndarray, exposure: float) -> float
     from lightstage.tonemap import tonemap
 
     mse = float(np.mean((tonemap(pred, exposure).astype(np.float64) - tonemap(ref, exposure)) ** 2))
-    return float("inf") if mse == 0 else 10.0 * np.log10(1.0 / mse)
+    return float("inf") if mse == 0 else float(10.0 * np.log10(1.0 / mse))
 
 
 def parse_lights_option(text: str | int | list) -> list[int | str]:
