@@ -123,10 +123,12 @@ def summarise_report(report: dict[str, Any] | None, summary: dict[str, Any]) -> 
             if isinstance(src.get(key), dict):
                 out[key] = src[key]
                 break
-    for key in ("warnings", "errors"):
+    # Stages name their per-item problems differently; the first key found counts.
+    for key, aliases in (("warnings", ("warnings",)), ("errors", ("errors", "problems", "rejected_frames"))):
         for src in sources:
-            if key in src:
-                n, msgs = _list_of_messages(src[key])
+            alias = next((a for a in aliases if a in src), None)
+            if alias is not None:
+                n, msgs = _list_of_messages(src[alias])
                 out[key] = n
                 out[f"{key}_first"] = msgs
                 break
