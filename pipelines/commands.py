@@ -96,11 +96,10 @@ def _run(args: argparse.Namespace) -> int:
         clean=args.clean,
         progress=not args.no_progress,
     )
-    ran = [r.stage for r in results if r.status == "ran"]
-    skipped = [r.stage for r in results if r.status == "skipped"]
-    print(
-        f"pipeline finished in {work}: ran {', '.join(ran) or 'nothing'}; up to date: {', '.join(skipped) or '-'}"
-    )
+    print(f"pipeline finished in {work} (records in {WorkDir.at(work).root / 'reports'}):")
+    for r in results:
+        took = f"{r.seconds:8.1f} s" if r.status == "ran" else " " * 10
+        print(f"  {r.stage:<10} {r.status:<8} {took}  {r.reason}")
     return 0
 
 
