@@ -382,3 +382,30 @@ def test_cli_relight_render_mesh_on_a_trained_checkpoint(trained_work, tmp_path,
         == 2
     )
     assert "no calibration" in capsys.readouterr().err
+
+
+def test_hdr_outputs_keep_values_beyond_half_range(tmp_path):
+    from lightstage.capture.frames import read_exr, read_exr_header
+    from lightstage.training.relight import write_hdr
+
+    img = np.full((4, 5, 3), 1.0e6, np.float32)
+    write_hdr(tmp_path / "big.exr", img)
+    assert read_exr_header(tmp_path / "big.exr").dtype == "float"
+    np.testing.assert_array_equal(read_exr(tmp_path / "big.exr"), img)
+    write_hdr(tmp_path / "small.exr", img * 1e-6)
+    assert read_exr_header(tmp_path / "small.exr").dtype == "half"
+
+
+def test_repeated_cameras_get_distinct_outputs(tmp_path):
+    from lightstage.capture.frames import write_exr
+
+    write_exr(tmp_path / "env.exr", _sky().astype(np.float32), half=False)
+    config = RelightConfig(
+        envmap=str(tmp_path / "env.exr"),
+        lights="8",
+        cameras=["orbit:size=8x6", "orbit:size=8x6"],
+        out=str(tmp_path / "o"),
+    )
+    summary = run_relight(WorkDir.at(tmp_path / "w"), config, progress=False, model=FakeSphere())
+    assert sorted(summary["views"]) == ["orbit_az0_el20", "orbit_az0_el20_2"]
+    assert (tmp_path / "o" / "orbit_az0_el20_2_k008.exr").is_file()

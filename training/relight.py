@@ -176,7 +176,7 @@ def run_relight(
     """Relight a trained model with an envmap for each camera and light count; EXR + PNG per image, a picture
     of the lights per count, and OUT/relight.json with timings and the K-light error vs 'all' when asked."""
     from lightstage.atomic import write_json_atomic
-    from lightstage.capture.frames import write_exr, write_image
+    from lightstage.capture.frames import write_image
     from lightstage.tonemap import auto_exposure, tonemap_u8
     from lightstage.training.envmap import envmap_lights, load_envmap, parse_resolution, preview_with_lights
     from lightstage.training.render_views import downscale_camera, load_scene_info, parse_camera
@@ -192,7 +192,7 @@ def run_relight(
     specs = list(config.cameras)
     if not specs:
         specs = [_default_camera(scene)]
-    cameras = [parse_camera(s, scene, model) for s in specs]
+    cameras = _unique_names([parse_camera(s, scene, model) for s in specs])
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
 
@@ -232,9 +232,7 @@ def run_relight(
             if exposure is None:
                 exposure = auto_exposure(img, 99.0)
             path = out / f"{named.name}_{_tag(key)}.exr"
-            write_exr(
-                path, img, attributes={"lightstage_envmap": str(config.envmap), "lightstage_lights": key}
-            )
+            write_hdr(path, img, {"lightstage_envmap": str(config.envmap), "lightstage_lights": key})
             write_image(path.with_suffix(".png"), tonemap_u8(img, exposure))
             view["results"][key] = {
                 "lights": len(lights),
@@ -255,6 +253,26 @@ def run_relight(
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     write_json_atomic(out / "relight.json", summary)
     return summary
+
+
+def write_hdr(path: Path, img: np.ndarray, attributes: dict[str, str] | None = None) -> None:
+    """Linear HDR EXR: float16 (the project's disk format) unless a value exceeds half's range, then float32."""
+    from lightstage.capture.frames import write_exr
+
+    half = bool(np.all(np.abs(img) < 65000.0))
+    write_exr(path, img, half=half, attributes=attributes)
+
+
+def _unique_names(cameras: list) -> list:
+    """Suffix repeated camera names (_2, _3, ...) so no output overwrites another."""
+    from lightstage.training.render_views import NamedCamera
+
+    seen: dict[str, int] = {}
+    out = []
+    for c in cameras:
+        seen[c.name] = seen.get(c.name, 0) + 1
+        out.append(c if seen[c.name] == 1 else NamedCamera(f"{c.name}_{seen[c.name]}", c.camera))
+    return out
 
 
 def _tag(key: str) -> str:

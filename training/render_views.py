@@ -373,8 +373,9 @@ def run_render(
     from tqdm import tqdm
 
     from lightstage.atomic import write_json_atomic
-    from lightstage.capture.frames import write_exr, write_image
+    from lightstage.capture.frames import write_image
     from lightstage.tonemap import auto_exposure, tonemap_u8
+    from lightstage.training.relight import write_hdr
 
     if config.orbit < 0:
         raise LightstageError(f"--orbit must be >= 0, got {config.orbit}")
@@ -402,9 +403,7 @@ def run_render(
             exposure = auto_exposure(img, 99.0)
         stem = f"{named.name}_{light.name}" if not config.orbit else f"frame_{k:04d}"
         exr = out / (f"{stem}.exr" if not config.orbit else f"frames/{stem}.exr")
-        write_exr(
-            exr, img, attributes={"lightstage_light_direction": ",".join(f"{v:.6f}" for v in light.direction)}
-        )
+        write_hdr(exr, img, {"lightstage_light_direction": ",".join(f"{v:.6f}" for v in light.direction)})
         png = tonemap_u8(img, exposure)
         write_image(exr.with_suffix(".png"), png)
         outputs.append(str(exr))
