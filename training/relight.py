@@ -39,10 +39,19 @@ class RelightableModel(Protocol):
 
 
 def load_model(work: WorkDir, checkpoint: str | None = None, device: str = "cpu") -> RelightableModel:
-    """The trained model of WORK (its latest checkpoint, or `checkpoint`) on `device`."""
-    from lightstage.training.trained import load_trained
+    """The trained model of WORK (its latest checkpoint, or `checkpoint`) on `device`, through the model
+    package's `load_trained` (in `lightstage.training.trained`; `lightstage.training.model` as the brief had it)."""
+    import importlib
 
-    return load_trained(work, Path(checkpoint) if checkpoint else None, device)
+    for name in ("lightstage.training.trained", "lightstage.training.model"):
+        try:
+            load_trained = importlib.import_module(name).load_trained
+        except (ImportError, AttributeError):
+            continue
+        return load_trained(work, Path(checkpoint) if checkpoint else None, device)
+    raise LightstageError(
+        "this installation has no trained-model loader (lightstage.training.trained.load_trained)"
+    )
 
 
 def camera_rays(camera) -> tuple[np.ndarray, np.ndarray]:
