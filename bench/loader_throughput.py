@@ -52,11 +52,37 @@ def peak_rss_child(shards: Path, batch_size: int) -> int:
     return int(out.stdout.strip().splitlines()[-1])
 
 
+def shard_speed(tmp: Path, width: int = 2048, height: int = 1366, lights: int = 9) -> dict:
+    """Seconds per training frame of `run_shard` (phase A + B, in-process) at the paper's processed resolution."""
+    from lightstage.dataset.fixtures import make_synthetic_work
+    from lightstage.dataset.shards import ShardConfig, run_shard
+    from lightstage.dataset.split import SplitConfig, run_split
+
+    work, _ = make_synthetic_work(
+        tmp / "speed", num_cameras=3, num_lights=lights, num_groups=1, width=width, height=height
+    )
+    proto = tmp / "proto.yaml"
+    proto.write_text("cameras: {test: 1}\nlights: {train: rest, test: 1}\n")
+    run_split(work, SplitConfig(str(proto)), progress=False)
+    s = run_shard(work, ShardConfig(workers=1, rays_per_shard=1 << 15), progress=False)
+    frames = s["frames"]
+    return {
+        "resolution": f"{width}x{height}",
+        "train_frames": frames,
+        "rays": s["rays"],
+        "timings": s["timings"],
+        "seconds_per_frame_sampling": round(s["timings"]["sample_views_s"] / frames, 4),
+        "seconds_per_frame_total": round(s["seconds"] / frames, 4),
+        "bytes_per_ray": s["bytes_per_ray"],
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--shards", type=int, default=8, help="shards of --rays-per-shard rays")
     ap.add_argument("--rays-per-shard", type=int, default=1 << 20)
     ap.add_argument("--seconds", type=float, default=8.0)
+    ap.add_argument("--shard-speed", action="store_true", help="also time run_shard per frame at 2048x1366")
     ap.add_argument("--out", type=Path, default=None, help="write results as JSON here")
     args = ap.parse_args()
 
@@ -83,6 +109,9 @@ def main() -> None:
             rss = peak_rss_child(path, 65536)
             results["memory"].append({"shards": n, "peak_rss_kB": rss})
             print(json.dumps(results["memory"][-1]), flush=True)
+        if args.shard_speed:
+            results["shard_speed"] = shard_speed(Path(tmp))
+            print(json.dumps(results["shard_speed"]), flush=True)
     results["load_average_after"] = os.getloadavg()
     if args.out:
         args.out.write_text(json.dumps(results, indent=2) + "\n")

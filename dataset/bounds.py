@@ -246,9 +246,13 @@ def run_bounds(
         dist = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, 5)
         views.append(_View(cam.K, cam.R, cam.t, dist))
     if len(views) < config.min_views:
+        if missing:
+            raise LightstageError(
+                f"{work.root}: {len(views)} of {len(names)} view masks found (missing e.g. {missing[:2]}); "
+                "run `lightstage preprocess` first"
+            )
         raise LightstageError(
-            f"{work.root}: only {len(views)} view masks found ({len(missing)} missing, e.g. "
-            f"{missing[:2]}); run `lightstage preprocess` first"
+            f"{work.root}: {len(views)} training view(s); carving the scene bounds needs at least {config.min_views}"
         )
     bounds, info = estimate_bounds(views, config)
     record = bounds.to_dict() | {
