@@ -49,8 +49,8 @@ class Cylinder:
 class Material:
     """Parameters of the translucent object's approximate subsurface-scattering model (see module doc)."""
 
-    kd: float = 0.5  # wrapped-diffuse weight
-    kt: float = 0.42  # diffusion-transmission weight
+    kd: float = 0.42  # wrapped-diffuse weight
+    kt: float = 0.4  # diffusion weight (re-emerging on the lit side or transmitted through)
     ks: float = 0.05  # specular weight
     shininess: float = 90.0
     wrap: float = 0.4
@@ -442,6 +442,12 @@ class _Prepared:
         self.albedo = hits.albedo[sel]
         self.ell = [_EllipsoidOrigin(e, self.p) for e in scene.body]
         self.core = _EllipsoidOrigin(scene.core, self.p)
+        # light entering here splits: the part diffusing through to the far side (thickness along -n)
+        # leaves there, so only the rest re-emerges on this side (1 - T(back thickness))
+        inward = tuple(-c for c in self.n)
+        back, _ = _positive_union_length([e.interval(inward) for e in self.ell])
+        sig = np.asarray(scene.material.sigma_tr, f)
+        self.same_side = (1.0 - np.exp(-back[:, None] * sig[None, :])).astype(f)
         st = scene.stand
         self.sx = self.p[0] - f(st.centre_xy[0])
         self.sy = self.p[1] - f(st.centre_xy[1])
@@ -542,6 +548,8 @@ def shade(
             core_pass = _core_shadow(ca, cb, mat.core_opacity)
             sig = np.asarray(mat.sigma_tr, f)
             trans = np.exp(-thick[:, None] * sig[None, :])
+            lit_side = thick < f(1e-4)
+            trans[lit_side] *= prep.same_side[lit_side]
             trans *= (ne_dot * core_pass * f(mat.kt / np.pi))[:, None]
             wrap = np.maximum(ndl + f(mat.wrap), 0) * f(mat.kd / (np.pi * (1.0 + mat.wrap) ** 2))
             spec = f(mat.ks * (mat.shininess + 8.0) / (8.0 * np.pi)) * ndh ** f(mat.shininess)

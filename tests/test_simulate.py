@@ -276,3 +276,55 @@ def test_cli(tmp_path: Path) -> None:
     )
     assert r.returncode == 2
     assert r.stderr.strip().count("\n") == 0 and r.stderr.startswith("lightstage: error:")
+
+
+def _hemisphere_views(n: int, rng: np.random.Generator) -> np.ndarray:
+    """Cosine-weighted unit directions around +z."""
+    u1, u2 = rng.random(n), rng.random(n)
+    r, phi = np.sqrt(u1), 2 * np.pi * u2
+    return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(1 - u1)], -1)
+
+
+def test_shading_does_not_create_energy() -> None:
+    """White albedo at the top of the head and on the thin fin's rim: the outgoing flux is <= the irradiance for
+    a light along the normal, and integrated over all light directions it stays below Lambert's (pi)."""
+    from lightstage.capture.presets import fibonacci_cap
+    from lightstage.capture.sim_scene import KIND_OBJECT, ViewHits, default_scene, shade
+
+    scene = default_scene()
+    parts = {e.name: e for e in scene.body}
+    head, fin = parts["head"], parts["fin"]
+    rim = np.asarray(fin.centre) + np.array([fin.radii[0] * np.cos(0.3), fin.radii[1] * np.sin(0.3), 0.0])
+    rim_n = (rim - np.asarray(fin.centre)) / np.asarray(fin.radii) ** 2
+    points = [
+        (np.asarray(head.centre) + np.array([0.0, 0.0, head.radii[2]]), np.array([0.0, 0.0, 1.0])),
+        (rim, rim_n / np.linalg.norm(rim_n)),
+    ]
+    rng = np.random.default_rng(0)
+    local = _hemisphere_views(2000, rng)
+    light_dirs = fibonacci_cap(500, 180.0)
+    dist = 1.5
+    for x, nrm in points:
+        t1 = np.cross(nrm, [0.3, 0.5, 0.8])
+        t1 /= np.linalg.norm(t1)
+        views = local @ np.stack([t1, np.cross(nrm, t1), nrm])
+        n = len(views)
+        hits = ViewHits(
+            n,
+            1,
+            np.arange(n),
+            np.full(n, KIND_OBJECT, np.int8),
+            np.repeat(x[None], n, 0),
+            np.repeat(nrm[None].astype(np.float32), n, 0),
+            views.astype(np.float32),
+            np.ones((n, 3), np.float32),
+        )
+
+        def flux(light_dir: np.ndarray, hits: ViewHits = hits, x: np.ndarray = x) -> np.ndarray:
+            rad = shade(scene, hits, x + dist * light_dir, dist**2)  # unit irradiance at normal incidence
+            return np.pi * rad.mean(0)  # cosine-weighted estimate of the integral of L cos, per channel
+
+        head_on = flux(nrm)
+        assert (head_on > 0.3).all() and (head_on <= 1.0).all()
+        total = np.mean([flux(d) for d in light_dirs], axis=0) * 4 * np.pi
+        assert (total <= np.pi).all(), total / np.pi
