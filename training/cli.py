@@ -1,4 +1,4 @@
-"""Subcommands of this package; each handler imports its heavy dependencies lazily."""
+"""Subcommands of this package (`train`, `eval`); each handler imports its heavy dependencies lazily."""
 
 from __future__ import annotations
 
@@ -6,4 +6,72 @@ import argparse
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add this package's subcommands."""
+    """Add `lightstage train` and `lightstage eval`."""
+    p = subparsers.add_parser(
+        "train", help="train the relighting model from WORK/shards (resumes WORK/train)"
+    )
+    p.add_argument("work", help="work directory")
+    p.add_argument("--config", default="paper", help="paper | fast | tiny | a YAML file (default: paper)")
+    p.add_argument("--steps", type=int, default=None, help="total optimiser steps (overrides the config)")
+    p.add_argument("--device", default="auto", help="cpu | cuda | auto (default)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=_train)
+
+    e = subparsers.add_parser("eval", help="score the trained model on the test split (reports/eval.json)")
+    e.add_argument("work", help="work directory")
+    e.add_argument("--checkpoint", default=None, help="checkpoint file (default: WORK/train/checkpoint.pt)")
+    e.add_argument("--device", default="auto", help="cpu | cuda | auto (default)")
+    e.add_argument("--max-images", type=int, default=None, help="score only the first N test images")
+    e.add_argument("--lpips-weights", default=None, help="local torchvision VGG16 state dict (.pth)")
+    e.add_argument("--lpips-linear-weights", default=None, help="local LPIPS vgg.pth linear layers")
+    e.add_argument("--no-progress", action="store_true", help="no progress bar")
+    e.set_defaults(func=_eval)
+
+
+def _train(args: argparse.Namespace) -> int:
+    import json
+
+    from lightstage.errors import LightstageError
+    from lightstage.training.config import load_config
+    from lightstage.training.run import run_train
+    from lightstage.workdir import WorkDir
+
+    overrides = {"optim": {"steps": args.steps}} if args.steps is not None else None
+    if args.steps is not None and args.steps < 1:
+        raise LightstageError("--steps must be >= 1")
+    config = load_config(args.config, overrides)
+    summary = run_train(WorkDir.at(args.work), config, progress=not args.no_progress, device=args.device)
+    print(json.dumps(summary))
+    return 0
+
+
+def _eval(args: argparse.Namespace) -> int:
+    import dataclasses
+    import json
+
+    from lightstage.training.evaluate import run_eval
+    from lightstage.training.run import pick_device
+    from lightstage.training.trained import load_trained
+    from lightstage.workdir import WorkDir
+
+    work = WorkDir.at(args.work)
+    device = pick_device(args.device)
+    cfg = load_trained(work, args.checkpoint, "cpu").config.eval
+    changes = {
+        k: v
+        for k, v in (
+            ("max_images", args.max_images),
+            ("lpips_weights", args.lpips_weights),
+            ("lpips_linear_weights", args.lpips_linear_weights),
+        )
+        if v is not None
+    }
+    summary = run_eval(
+        work,
+        dataclasses.replace(cfg, **changes),
+        progress=not args.no_progress,
+        checkpoint=args.checkpoint,
+        device=str(device),
+    )
+    print(json.dumps(summary))
+    return 0

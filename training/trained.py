@@ -1,0 +1,106 @@
+"""The interface other code (relighting, novel views, meshes) uses: `load_trained(work)` -> `TrainedModel`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from lightstage.cameras import PinholeCamera
+from lightstage.training.checkpoint import load_checkpoint
+from lightstage.training.config import TrainConfig
+from lightstage.training.model import RelightModel
+from lightstage.workdir import WorkDir
+
+
+class TrainedModel:
+    """A trained RelightModel in eval mode on one device, with world-coordinate queries that never build graphs."""
+
+    def __init__(
+        self,
+        model: RelightModel,
+        config: TrainConfig,
+        exposure: float = 1.0,
+        baseline_rgb: list[float] | None = None,
+        step: int = 0,
+    ):
+        self.model = model.eval()
+        self.config = config
+        self.exposure = exposure
+        self.baseline_rgb = baseline_rgb or [0.0, 0.0, 0.0]
+        self.step = step
+
+    @property
+    def device(self) -> torch.device:
+        return self.model.centre.device
+
+    @property
+    def centre(self) -> np.ndarray:
+        """Bounds centre (world metres)."""
+        return self.model.centre.cpu().numpy().astype(np.float64)
+
+    @property
+    def scale(self) -> float:
+        """Bounds scale: x_norm = (x - centre) / scale."""
+        return float(self.model.scale)
+
+    @torch.no_grad()
+    def render_rays(
+        self,
+        origins: torch.Tensor,
+        directions: torch.Tensor,
+        light_directions: torch.Tensor,
+        chunk: int = 8192,
+    ) -> torch.Tensor:
+        """(N, 3) linear HDR pixels for world rays under unit light directions (rendered in chunks)."""
+        out = []
+        for i in range(0, origins.shape[0], chunk):
+            sl = slice(i, i + chunk)
+            res = self.model(
+                origins[sl].to(self.device),
+                directions[sl].to(self.device),
+                light_directions[sl].to(self.device),
+                randomized=False,
+            )
+            out.append(res["rgb"].float())
+        return torch.cat(out) if out else torch.zeros(0, 3, device=self.device)
+
+    @torch.no_grad()
+    def density(self, points_world: torch.Tensor, chunk: int = 65536) -> torch.Tensor:
+        """(N,) fine-network density at world points (0 outside the scene bounds)."""
+        parts = [
+            self.model.density(points_world[i : i + chunk].to(self.device))
+            for i in range(0, len(points_world), chunk)
+        ]
+        return torch.cat(parts) if parts else torch.zeros(0, device=self.device)
+
+    def image_from_camera(
+        self, camera: PinholeCamera, light_direction: np.ndarray, chunk: int = 8192
+    ) -> np.ndarray:
+        """(H, W, 3) float32 linear HDR image seen by `camera` under the unit `light_direction`."""
+        from lightstage.training.evaluate import render_image
+
+        return render_image(self.model, camera, light_direction, chunk)
+
+
+def load_trained(
+    work: WorkDir, checkpoint: Path | None = None, device: str | torch.device = "cpu"
+) -> TrainedModel:
+    """Load WORK/train/checkpoint.pt (or `checkpoint`) onto `device`."""
+    from lightstage.training.trainer import CHECKPOINT_NAME
+
+    path = Path(checkpoint) if checkpoint is not None else work.train_dir / CHECKPOINT_NAME
+    ck = load_checkpoint(path, map_location=device)
+    config = TrainConfig.from_dict(ck["config"])
+    state = ck["model"]
+    model = RelightModel(config.model, state["centre"].cpu(), float(state["scale"]))
+    model.load_state_dict(state)
+    stats = ck.get("stats", {})
+    return TrainedModel(
+        model.to(device),
+        config,
+        float(stats.get("exposure", 1.0)),
+        stats.get("baseline_rgb"),
+        int(ck.get("step", 0)),
+    )

@@ -1,0 +1,364 @@
+"""The training loop: Adam with warm-up + exponential/cosine decay, GPU autocast (bf16/fp16), gradient clipping,
+atomic checkpoints that resume exactly, CSV/JSON logs + loss-curve PNG (TensorBoard when importable), periodic
+evaluation with preview PNGs, and DDP across `torchrun` processes (rank 0 writes)."""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import math
+import random
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from lightstage.atomic import write_json_atomic
+from lightstage.tonemap import auto_exposure
+from lightstage.training.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from lightstage.training.config import OptimConfig, TrainConfig
+from lightstage.training.data import BatchSource, TestImage
+from lightstage.training.losses import total_loss
+from lightstage.training.model import RelightModel
+from lightstage.workdir import ZONE_FOREGROUND
+
+CHECKPOINT_NAME = "checkpoint.pt"
+LOG_FIELDS = ("step", "loss", "rgb_fine", "rgb_coarse", "mask", "lr", "rays_per_s", "occupied")
+
+
+@dataclass
+class TrainStats:
+    """What evaluation needs from the training data: the capture's exposure and the constant-colour baseline."""
+
+    exposure: float
+    baseline_rgb: list[float]
+
+
+def lr_factor(step: int, cfg: OptimConfig) -> float:
+    """Multiplier of cfg.lr at `step`: linear warm-up from 1% then exponential or cosine decay to lr_final."""
+    if step < cfg.warmup_steps:
+        return 0.01 + 0.99 * step / cfg.warmup_steps
+    p = min(1.0, (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps))
+    final = cfg.lr_final / cfg.lr
+    if cfg.schedule == "exponential":
+        return final**p
+    return final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * p))
+
+
+def compute_stats(source: BatchSource, n_batches: int, percentile: float) -> TrainStats:
+    """Exposure (percentile of foreground luminance -> 1) and mean colour of the first training batches as
+    the loader composes them (1/2 foreground, 3/8 band, 1/8 background)."""
+    rgb, fg = [], []
+    for _, batch in zip(range(max(1, n_batches)), source.batches(0, 0, 1), strict=False):
+        rgb.append(batch["rgb"].float().numpy())
+        fg.append(batch["zone"].numpy() == ZONE_FOREGROUND)
+    rgb_all, fg_all = np.concatenate(rgb), np.concatenate(fg)
+    exposure = auto_exposure(rgb_all[fg_all] if fg_all.any() else rgb_all, percentile)
+    return TrainStats(exposure=float(exposure), baseline_rgb=rgb_all.mean(0).astype(float).tolist())
+
+
+def distributed() -> tuple[int, int]:
+    """(rank, world size) of the initialised process group, or (0, 1)."""
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        return torch.distributed.get_rank(), torch.distributed.get_world_size()
+    return 0, 1
+
+
+def autocast_context(device: torch.device, precision: str) -> contextlib.AbstractContextManager:
+    """bf16/fp16 autocast on CUDA; full precision elsewhere."""
+    if device.type != "cuda" or precision == "fp32":
+        return contextlib.nullcontext()
+    dtype = torch.bfloat16 if precision == "bf16" and torch.cuda.is_bf16_supported() else torch.float16
+    return torch.autocast("cuda", dtype=dtype)
+
+
+def fit(
+    config: TrainConfig,
+    source: BatchSource,
+    out_dir: Path,
+    centre: Sequence[float],
+    scale: float,
+    *,
+    device: str | torch.device = "cpu",
+    test_images: Sequence[TestImage] = (),
+    progress: bool = True,
+    resume: bool = True,
+    stop_at: int | None = None,
+    model_out: list | None = None,
+) -> dict[str, Any]:
+    """Train until config.optim.steps (or `stop_at`, for interrupted runs in tests), resuming from
+    out_dir/checkpoint.pt when present. Returns a summary dict (rank 0 writes every file)."""
+    device = torch.device(device)
+    rank, world = distributed()
+    writer_rank = rank == 0
+    out_dir = Path(out_dir)
+    cfg, ocfg = config, config.optim
+    total = ocfg.steps if stop_at is None else min(stop_at, ocfg.steps)
+    torch.manual_seed(cfg.seed + rank)
+    np.random.seed(cfg.seed + rank)  # noqa: NPY002 (seed the global RNG third-party code may use)
+    random.seed(cfg.seed + rank)
+
+    model = RelightModel(cfg.model, centre, scale).to(device)
+    opt = torch.optim.Adam(
+        model.parameters(),
+        lr=ocfg.lr,
+        betas=(ocfg.beta1, ocfg.beta2),
+        eps=ocfg.adam_eps,
+        weight_decay=ocfg.weight_decay,
+    )
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, ocfg))
+    use_scaler = device.type == "cuda" and ocfg.precision == "fp16"
+    scaler = torch.amp.GradScaler("cuda", enabled=use_scaler) if use_scaler else None
+
+    step, stats = 0, None
+    ckpt_path = out_dir / CHECKPOINT_NAME
+    if resume and ckpt_path.is_file():
+        ck = load_checkpoint(ckpt_path, map_location=device)
+        model.load_state_dict(ck["model"])
+        opt.load_state_dict(ck["optimizer"])
+        sched.load_state_dict(ck["scheduler"])
+        if scaler is not None and ck.get("scaler"):
+            scaler.load_state_dict(ck["scaler"])
+        states = ck["rng"]
+        set_rng_state(states[rank] if rank < len(states) else states[0])
+        step = int(ck["loader"]["position"])
+        stats = TrainStats(**ck["stats"])
+    if stats is None:
+        stats = compute_stats(source, cfg.eval.stats_batches, cfg.eval.exposure_percentile)
+
+    net: torch.nn.Module = model
+    if world > 1:
+        net = torch.nn.parallel.DistributedDataParallel(
+            model, device_ids=[device.index] if device.type == "cuda" else None
+        )
+
+    log = _Log(out_dir, step) if writer_rank else None
+    batches = iter(source.batches(step, rank, world))
+    bar = tqdm(
+        total=total,
+        initial=step,
+        desc=f"train {cfg.name}",
+        disable=not (progress and writer_rank),
+        unit="step",
+    )
+    t_start, rays_done, t_window, rays_window = time.perf_counter(), 0, time.perf_counter(), 0
+    parts: dict[str, float] = {}
+    loss_value = float("nan")
+    while step < total:
+        batch = {k: v.to(device, non_blocking=True) for k, v in next(batches).items()}
+        model.update_occupancy(step, cfg.seed)
+        with autocast_context(device, ocfg.precision):
+            out = net(batch["origins"], batch["directions"], batch["light_directions"], randomized=True)
+        loss, parts = total_loss(out, batch, cfg.loss)
+        opt.zero_grad(set_to_none=True)
+        if scaler is not None:
+            scaler.scale(loss).backward()
+            scaler.unscale_(opt)
+        else:
+            loss.backward()
+        if ocfg.grad_clip > 0:
+            torch.nn.utils.clip_grad_norm_(model.parameters(), ocfg.grad_clip)
+        if scaler is not None:
+            scaler.step(opt)
+            scaler.update()
+        else:
+            opt.step()
+        sched.step()
+        step += 1
+        n_rays = batch["rgb"].shape[0] * world
+        rays_done += n_rays
+        rays_window += n_rays
+        loss_value = float(loss.detach())
+        bar.update(1)
+        if log is not None and (step % cfg.log_every == 0 or step == total):
+            now = time.perf_counter()
+            occ = model.occupancy.occupied_fraction() if model.occupancy is not None else 1.0
+            row = {
+                "step": step,
+                "loss": loss_value,
+                **parts,
+                "lr": sched.get_last_lr()[0],
+                "rays_per_s": rays_window / max(now - t_window, 1e-9),
+                "occupied": occ,
+            }
+            log.add(row)
+            bar.set_postfix(loss=f"{loss_value:.4g}")
+            t_window, rays_window = now, 0
+        if cfg.eval.every and step % cfg.eval.every == 0 and writer_rank and test_images:
+            psnrs = preview(
+                model, test_images[: cfg.eval.images], stats, out_dir / "previews", step, cfg.eval.chunk, log
+            )
+            bar.write(f"step {step}: test PSNR {np.mean(psnrs):.2f} dB on {len(psnrs)} image(s)")
+        if step % cfg.checkpoint_every == 0 or step == total:
+            _save(ckpt_path, model, opt, sched, scaler, step, world, stats, cfg, writer_rank)
+            if log is not None:
+                log.flush(plot=True)
+    bar.close()
+    elapsed = time.perf_counter() - t_start
+    summary = {
+        "steps": step,
+        "final_loss": loss_value,
+        "final_parts": parts,
+        "seconds": elapsed,
+        "rays_per_s": rays_done / elapsed if elapsed > 0 else None,
+        "device": str(device),
+        "world_size": world,
+        "checkpoint": str(ckpt_path),
+        "exposure": stats.exposure,
+        "baseline_rgb": stats.baseline_rgb,
+        "tensorboard": log is not None and log.tb is not None,
+    }
+    if log is not None:
+        log.close()
+    if model_out is not None:
+        model_out.append(model)
+    return summary
+
+
+def _save(path, model, opt, sched, scaler, step, world, stats, cfg, writer_rank) -> None:
+    """Gather every rank's RNG state; rank 0 writes the checkpoint atomically."""
+    states = [rng_state()]
+    if world > 1:
+        gathered: list[Any] = [None] * world
+        torch.distributed.all_gather_object(gathered, states[0])
+        states = gathered
+    if not writer_rank:
+        return
+    save_checkpoint(
+        path,
+        {
+            "step": step,
+            "config": cfg.to_dict(),
+            "model": model.state_dict(),
+            "optimizer": opt.state_dict(),
+            "scheduler": sched.state_dict(),
+            "scaler": scaler.state_dict() if scaler is not None else {},
+            "rng": [_to_cpu(s) for s in states],
+            "loader": {"position": step, "world_size": world},
+            "stats": {"exposure": stats.exposure, "baseline_rgb": stats.baseline_rgb},
+        },
+    )
+
+
+def _to_cpu(x: Any) -> Any:
+    if isinstance(x, torch.Tensor):
+        return x.cpu()
+    if isinstance(x, dict):
+        return {k: _to_cpu(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return type(x)(_to_cpu(v) for v in x)
+    return x
+
+
+@torch.no_grad()
+def preview(
+    model: RelightModel, images, stats: TrainStats, folder: Path, step: int, chunk: int, log=None
+) -> list[float]:
+    """Render a few test images, write prediction | target PNGs and return their PSNRs."""
+    from lightstage.training.evaluate import render_image, side_by_side
+    from lightstage.training.metrics import image_metrics
+
+    was_training = model.training
+    model.eval()
+    psnrs = []
+    for k, img in enumerate(images):
+        pred = render_image(model, img.camera, img.light_direction, chunk)
+        m = image_metrics(pred, img.target, stats.exposure)
+        psnrs.append(m["psnr"])
+        png = side_by_side(pred, img.target, stats.exposure)
+        folder.mkdir(parents=True, exist_ok=True)
+        _write_png(folder / f"step{step:07d}_{k}.png", png)
+        if log is not None and log.tb is not None:
+            log.tb.add_image(f"preview/{k}", png, step, dataformats="HWC")
+    if log is not None:
+        log.add_eval(step, float(np.mean(psnrs)))
+    model.train(was_training)
+    return psnrs
+
+
+def _write_png(path: Path, rgb_u8: np.ndarray) -> None:
+    import cv2
+
+    from lightstage.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb_u8, cv2.COLOR_RGB2BGR)):
+            raise OSError(f"{path}: could not write PNG")
+
+
+class _Log:
+    """log.csv (+ loss.png, log.json of evaluations) in the output folder; TensorBoard when importable.
+    On resume, rows after the checkpoint's step are dropped so the log matches the resumed run."""
+
+    def __init__(self, folder: Path, start_step: int):
+        self.folder = folder
+        folder.mkdir(parents=True, exist_ok=True)
+        self.csv = folder / "log.csv"
+        self.rows: list[dict[str, Any]] = []
+        if start_step > 0 and self.csv.is_file():
+            with open(self.csv, newline="") as f:
+                self.rows = [r for r in csv.DictReader(f) if int(r["step"]) <= start_step]
+        self.evals: list[dict[str, float]] = []
+        self.tb = None
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.tb = SummaryWriter(str(folder / "tensorboard"), purge_step=start_step or None)
+        except ImportError:  # tensorboard is an optional extra
+            self.tb = None
+
+    def add(self, row: dict[str, Any]) -> None:
+        self.rows.append(row)
+        if self.tb is not None:
+            for k, v in row.items():
+                if k != "step":
+                    self.tb.add_scalar(f"train/{k}", v, row["step"])
+
+    def add_eval(self, step: int, psnr: float) -> None:
+        self.evals.append({"step": step, "psnr": psnr})
+        if self.tb is not None:
+            self.tb.add_scalar("eval/psnr", psnr, step)
+
+    def flush(self, plot: bool = False) -> None:
+        from lightstage.atomic import atomic_path
+
+        with atomic_path(self.csv) as tmp, open(tmp, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=LOG_FIELDS, extrasaction="ignore")
+            w.writeheader()
+            w.writerows(self.rows)
+        write_json_atomic(self.folder / "log.json", {"train": self.rows, "eval": self.evals})
+        if plot and self.rows:
+            self._plot()
+
+    def _plot(self) -> None:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        from lightstage.atomic import atomic_path
+
+        steps = [int(r["step"]) for r in self.rows]
+        fig, ax = plt.subplots(figsize=(6, 3.5), dpi=100)
+        for key in ("loss", "rgb_fine", "rgb_coarse"):
+            vals = [float(r[key]) if r.get(key) not in (None, "") else np.nan for r in self.rows]
+            if np.isfinite(vals).any():
+                ax.plot(steps, vals, label=key)
+        ax.set_yscale("log")
+        ax.set_xlabel("step")
+        ax.set_ylabel("loss")
+        ax.legend()
+        fig.tight_layout()
+        with atomic_path(self.folder / "loss.png") as tmp:
+            fig.savefig(tmp, format="png")
+        plt.close(fig)
+
+    def close(self) -> None:
+        self.flush(plot=True)
+        if self.tb is not None:
+            self.tb.close()
