@@ -51,11 +51,11 @@ MANIFEST = "manifest.json"
 
 @dataclass(frozen=True)
 class ShardConfig:
-    """Rays per training image (split 4:3:1 fg/band/bg), rays per shard, the padded border (pad the short image
+    """Rays per training image (split 4:3:1 fg/band/bg; 0 = auto), rays per shard, the padded border (pad the short image
     side to a square, plus `border_px` all round; those rays have target 0), background target ('zero' as the
     paper: every pixel outside the mask has target 0; 'pixel': keep values), seed, local processes."""
 
-    rays_per_image: int = 8192
+    rays_per_image: int = 0  # 0: auto = min(8192, a quarter of the image's pixels), a multiple of 8
     rays_per_shard: int = 1 << 20
     pad_to_square: bool = True
     border_px: int = 16
@@ -79,6 +79,8 @@ class ShardConfig:
         cfg = cls(**out)
         for k in ("rays_per_image", "rays_per_shard"):
             v = getattr(cfg, k)
+            if k == "rays_per_image" and v == 0:
+                continue
             if v < 8 or v % 8:
                 raise LightstageError(f"shard config: {k}: must be a positive multiple of 8, got {v}")
         if cfg.background_target not in ("zero", "pixel"):
@@ -191,6 +193,13 @@ class ViewTask:
     chunk: str
 
 
+def image_quota(cfg: ShardConfig, width: int, height: int) -> int:
+    """Rays per training image: the configured count, or auto: min(8192, W*H/4) rounded down to a multiple of 8."""
+    if cfg.rays_per_image:
+        return cfg.rays_per_image
+    return max(8, min(8192, width * height // 4) // 8 * 8)
+
+
 def quotas(total: int) -> tuple[int, int, int]:
     """Per-zone counts (fg, band, bg) of `total` (a multiple of 8) in the paper's 4:3:1."""
     return tuple(total // 8 * c for c in COMPOSITION)  # type: ignore[return-value]
@@ -230,7 +239,7 @@ def write_view_chunk(task: ViewTask) -> dict[str, Any]:
     bg_img = np.flatnonzero(zones.ravel() == ZONE_BACKGROUND)
     pad = border_geometry(W, H, cfg)
     n_ring = ring_size(W, H, pad)
-    q = dict(zip(ZONES, quotas(cfg.rays_per_image), strict=True))
+    q = dict(zip(ZONES, quotas(image_quota(cfg, W, H)), strict=True))
     blocks: dict[int, list[np.ndarray]] = {z: [] for z in ZONES}
     stats = {"duplicated": 0, "missing": {ZONE_NAMES[z]: 0 for z in ZONES}}
     lp = np.array(task.light_positions, np.float32).reshape(-1, 3)

@@ -191,3 +191,34 @@ def test_dask_client_writes_identical_shards(sharded, tmp_path):
     with dask_client(ClusterSettings(workers=2, dashboard=""), verbose=False) as client:
         m = _sharded_copy(tmp_path, CFG, client=client)
     assert [s["sha256"] for s in m["shards"]] == [s["sha256"] for s in ref["shards"]]
+
+
+@pytest.mark.slow
+def test_tiny_simulated_capture_end_to_end(tiny_capture, tmp_path):
+    """Simulator tiny capture -> preprocess -> ground-truth calibration -> split -> bounds -> shards -> loader."""
+    run_mod = pytest.importorskip("lightstage.preprocess.run")
+    from lightstage.dataset.loader import RayShardDataset
+    from lightstage.preprocess.config import PreprocessConfig
+    from lightstage.workdir import WorkDir
+
+    work = WorkDir.at(tmp_path / "work")
+    work.root.mkdir()
+    work.capture_pointer.write_text(str(tiny_capture))
+    run_mod.run_preprocess(work, PreprocessConfig(), progress=False)
+    work.calibration.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copy(tiny_capture / "ground_truth" / "geometry.json", work.calibration)
+    counts = run_split(work, SplitConfig("paper"), progress=False)["counts"]
+    rejected = json.loads(work.report("preprocess").read_text()).get("rejected_frames", [])
+    assert counts["train"] + counts["train_excluded"] == 9 * 3 * 3
+    assert counts["train_excluded"] + counts["test_excluded"] <= len(rejected)
+    run_bounds(work, BoundsConfig(), progress=False)
+    b = load_bounds(work.bounds)
+    truth = json.loads((tiny_capture / "ground_truth" / "scene.json").read_text())["object_bbox"]
+    assert np.all(b.box_min <= np.array(truth["min"]) + 0.01) and np.all(
+        b.box_max >= np.array(truth["max"]) - 0.01
+    )
+    s = run_shard(work, ShardConfig(rays_per_shard=4096, workers=1), progress=False)
+    assert s["rays"] > 0 and s["test_images"] == counts["test"]
+    batch = next(iter(RayShardDataset(work.shards_dir, batch_size=1024)))
+    assert batch["rgb"][:512].mean() > 0  # foreground rays carry light
+    assert (batch["rgb"][-128:] == 0).all()  # background target 0
