@@ -1,0 +1,116 @@
+"""The preprocess stage's configuration: one dataclass with defaults, validated from a mapping by `from_dict`."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass
+from typing import Any
+
+from lightstage.capture.frames import COMPRESSIONS
+from lightstage.errors import LightstageError
+
+
+@dataclass(frozen=True)
+class PreprocessConfig:
+    """Parameters of downscaling, per-view statistics, segmentation and flare scoring (defaults are tuned on
+    the simulator and sized for the reference stage)."""
+
+    # ---- downscale / output frames
+    compression: str = "zip"  # processed frames: zip | piz | none (lossless only)
+    band_rows: int = 256  # raw rows per band when downscaling (multiple of 4; bounds temporaries)
+    # ---- scheduling
+    chunk_lights: int = 32  # lights per task: a chunk's partial statistics merge with the others in a tree
+    window: int = 0  # tasks in flight with a dask client (0: 4 per worker thread)
+    # ---- segmentation (on the processed resolution)
+    noise_floor: float = 0.0  # background noise level; 0 estimates it per view from the darkest pixels
+    lit_sigmas: float = 6.0  # a pixel is "lit" in a frame when it exceeds its background by this many sigmas
+    min_lit_fraction: float = 0.12  # foreground: lit in at least this fraction of the unsaturated frames
+    max_saturated_fraction: float = 0.5  # foreground pixels are mostly unsaturated
+    open_radius: int = 1  # morphological opening radius (pixels)
+    close_radius: int = 2  # morphological closing radius (pixels)
+    min_component_fraction: float = 0.05  # keep components with at least this fraction of the largest one ...
+    centre_weight: float = 0.5  # ... scored by area, discounted by distance from the image centre
+    fill_holes: bool = True
+    band_width: int = 6  # zone map: pixels on each side of the silhouette that form the band
+    # ---- flare / outlier frames
+    flare_dilate: int = 8  # mask dilation (pixels) before measuring energy outside it
+    flare_thumb: int = 8  # per-frame thumbnails for flare scoring are this many times smaller
+    flare_threshold: float = 0.15  # reject a frame when its flare score exceeds this
+    max_lost_fraction: float = 0.1  # flag views that lose more than this fraction of frames (bad + rejected)
+    # ---- previews
+    exposure: float = 0.0  # tonemap exposure for wellit/overlay PNGs; 0 = automatic, once per capture
+    exposure_percentile: float = 99.0  # automatic exposure maps this foreground luminance percentile to 1
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str = "preprocess") -> PreprocessConfig:
+        """Build from a mapping; unknown keys and wrong types raise a LightstageError naming the key."""
+        if data is None:
+            return cls()
+        if not isinstance(data, dict):
+            raise LightstageError(f"{source}: expected a mapping, got {type(data).__name__}")
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        kwargs: dict[str, Any] = {}
+        for key, value in data.items():
+            if key not in fields:
+                raise LightstageError(f"{source}.{key}: unknown key (known: {', '.join(fields)})")
+            kind = type(fields[key].default)
+            if kind is float and isinstance(value, int) and not isinstance(value, bool):
+                value = float(value)
+            if not isinstance(value, kind) or (isinstance(value, bool) and kind is not bool):
+                raise LightstageError(f"{source}.{key}: expected {kind.__name__}, got {value!r}")
+            kwargs[key] = value
+        config = cls(**kwargs)
+        config.validate(source)
+        return config
+
+    def validate(self, source: str = "preprocess") -> None:
+        """Raise a LightstageError naming the key for out-of-range values."""
+
+        def bad(key: str, what: str) -> LightstageError:
+            return LightstageError(f"{source}.{key}: {what}, got {getattr(self, key)!r}")
+
+        if self.compression not in COMPRESSIONS:
+            raise bad("compression", f"expected one of {', '.join(COMPRESSIONS)}")
+        if self.band_rows < 4 or self.band_rows % 4:
+            raise bad("band_rows", "expected a positive multiple of 4")
+        for key in ("chunk_lights", "flare_thumb"):
+            if getattr(self, key) < 1:
+                raise bad(key, "expected an integer >= 1")
+        for key in ("window", "open_radius", "close_radius", "band_width", "flare_dilate"):
+            if getattr(self, key) < 0:
+                raise bad(key, "expected an integer >= 0")
+        for key in ("noise_floor", "lit_sigmas", "centre_weight", "flare_threshold", "exposure"):
+            if not getattr(self, key) >= 0:
+                raise bad(key, "expected a number >= 0")
+        for key in (
+            "min_lit_fraction",
+            "max_saturated_fraction",
+            "min_component_fraction",
+            "max_lost_fraction",
+        ):
+            if not 0 <= getattr(self, key) <= 1:
+                raise bad(key, "expected a fraction in [0, 1]")
+        if not 0 < self.exposure_percentile <= 100:
+            raise bad("exposure_percentile", "expected a percentile in (0, 100]")
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def stats_key(self) -> str:
+        """Hash of what the per-view statistics depend on (a rerun with another value recomputes them)."""
+        return _hash({"chunk_lights": self.chunk_lights, "format": STATS_FORMAT})
+
+    def view_key(self) -> str:
+        """Hash of everything the per-view outputs depend on."""
+        keep = {k: v for k, v in self.to_dict().items() if k not in ("window", "band_rows", "compression")}
+        return _hash({**keep, "format": STATS_FORMAT})
+
+
+# Bumped when the statistics or segmentation change meaning, so stale view outputs are recomputed.
+STATS_FORMAT = 1
+
+
+def _hash(obj: Any) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True).encode()).hexdigest()[:16]

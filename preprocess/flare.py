@@ -1,0 +1,77 @@
+"""Per-frame thumbnails, the per-frame "lit" threshold, and flare/outlier scores.
+
+While a view streams by, each frame leaves a small luminance thumbnail and a saturated-fraction thumbnail
+(a few KB). Once the view's mask is known, a frame's flare score is the light it puts outside the dilated
+mask beyond the view's typical background (per-pixel median over frames), saturated bulbs counted at the
+cutoff, relative to the view's typical foreground energy. Frames scoring above the threshold are rejected.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# Percentile of a frame's thumbnail luminance taken as its dark (background) level.
+DARK_PERCENTILE = 5.0
+# A pixel is lit in a frame when brighter than LIT_RATIO x the frame's dark level + an absolute floor.
+LIT_RATIO = 4.0
+# The floor, relative to the stage's saturation cutoff (0.00054 for the reference stage).
+LIT_FLOOR = 2.0**-13
+
+
+@dataclass(frozen=True)
+class Thumbnail:
+    """A frame's luminance and saturated-fraction thumbnails."""
+
+    lum: np.ndarray  # (th, tw) float32
+    saturated: np.ndarray  # (th, tw) float32, fraction of saturated processed pixels
+
+
+def thumbnail(lum: np.ndarray, saturated: np.ndarray, factor: int) -> Thumbnail:
+    """Area-average thumbnails (factor x smaller, at least 1x1) of luminance and saturation flags."""
+    import cv2
+
+    h, w = lum.shape
+    size = (max(1, w // factor), max(1, h // factor))
+    t_lum = cv2.resize(lum, size, interpolation=cv2.INTER_AREA)
+    t_sat = cv2.resize(saturated.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    return Thumbnail(t_lum, t_sat)
+
+
+def lit_threshold(thumb: Thumbnail, cutoff: float) -> float:
+    """Luminance above which a pixel counts as lit in this frame: a multiple of the frame's dark level
+    (robust to flares and exposure) plus a small floor relative to the cutoff."""
+    dark = float(np.percentile(thumb.lum, DARK_PERCENTILE))
+    return LIT_RATIO * max(dark, 0.0) + LIT_FLOOR * cutoff
+
+
+def mask_thumbnail(mask: np.ndarray, dilate: int, shape: tuple[int, int]) -> np.ndarray:
+    """(th, tw) bool: thumbnail pixels that touch the mask dilated by `dilate` pixels."""
+    import cv2
+
+    m = mask.astype(np.uint8)
+    if dilate > 0:
+        m = cv2.dilate(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * dilate + 1, 2 * dilate + 1)))
+    t = cv2.resize(m.astype(np.float32), (shape[1], shape[0]), interpolation=cv2.INTER_AREA)
+    return t > 0
+
+
+def flare_scores(
+    lum_thumbs: np.ndarray, sat_thumbs: np.ndarray, mask: np.ndarray, dilate: int, cutoff: float
+) -> np.ndarray:
+    """(k,) flare scores of a view's k frames from their (k, th, tw) thumbnails and the view's mask."""
+    k, th, tw = lum_thumbs.shape
+    if k == 0:
+        return np.zeros(0)
+    inside = mask_thumbnail(mask, dilate, (th, tw))
+    outside = ~inside
+    px = mask.shape[0] * mask.shape[1] / float(th * tw)  # processed pixels per thumbnail pixel
+    typical = np.median(lum_thumbs, axis=0)
+    excess = np.maximum(lum_thumbs - typical[None], 0.0)
+    excess = np.maximum(excess, sat_thumbs * cutoff)  # saturated area counts at the cutoff
+    outside_energy = (excess[:, outside]).sum(axis=1) * px
+    fg = mask_thumbnail(mask, 0, (th, tw)) if mask.any() else inside
+    fg_energy = float(np.median(lum_thumbs[:, fg].sum(axis=1) * px)) if fg.any() else 0.0
+    floor = 1e-3 * cutoff * mask.size  # scale for views with no or a dark foreground
+    return outside_energy / max(fg_energy, floor)

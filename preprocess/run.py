@@ -1,0 +1,715 @@
+"""`run_preprocess`: raw OLAT frames -> processed frames, per-view statistics, masks, zones, flare rejects.
+
+Work is split per view into chunks of lights. A chunk task decodes each raw frame once, writes its 4x
+downscaled RGBS frame (atomically) and streams it into the chunk's partial statistics, which it saves
+(atomically) as a partial file. A view task merges the partials in a tree, segments, scores flares and
+writes the view's outputs; `view.json` is written last and marks the view finished. A final in-process step
+writes the tonemapped previews with one exposure for the whole capture, then `reports/preprocess.json`.
+
+Resuming: finished views are skipped; in unfinished views, chunks with a partial are skipped and frames
+with a valid processed file are read back instead of decoded, so a killed run resumes with identical
+outputs. Bad frames (missing, corrupt, wrong size, non-finite) are recorded and skipped.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lightstage.atomic import write_json_atomic
+from lightstage.capture.layout import Capture, FrameId, ViewId, open_capture
+from lightstage.errors import LightstageError
+from lightstage.preprocess.config import PreprocessConfig
+from lightstage.workdir import DOWNSCALE, WorkDir
+
+__all__ = ["PreprocessConfig", "run_preprocess", "process_chunk", "process_view"]
+
+VIEW_RECORD = "view.json"
+PARTIALS = "partials"
+PREVIEWS = "previews.json"
+GT_MASKS = Path("ground_truth") / "masks"
+
+
+# ---- jobs and records (small, picklable) -----------------------------------------------------------------
+@dataclass(frozen=True)
+class ChunkJob:
+    """One chunk: a few lights of one view, with everything a worker needs."""
+
+    work_root: str
+    group: str
+    camera: str
+    index: int
+    lights: tuple[int, ...]
+    raw_paths: tuple[str, ...]
+    raw_size: tuple[int, int]  # (width, height)
+    cutoff: float
+    exposure_scale: float
+    config: PreprocessConfig
+
+
+@dataclass(frozen=True)
+class ChunkRecord:
+    """What a chunk task reports: counts, per-frame problems, timings."""
+
+    group: str
+    camera: str
+    index: int
+    processed: int = 0
+    reused: int = 0
+    problems: tuple[tuple[int, str], ...] = ()
+    seconds: float = 0.0
+    resumed: bool = False  # the partial statistics already existed
+
+
+@dataclass(frozen=True)
+class ViewJob:
+    """One view's merge/segment/score step."""
+
+    work_root: str
+    group: str
+    camera: str
+    lights: tuple[int, ...]
+    chunks: int
+    size: tuple[int, int]  # processed (width, height)
+    cutoff: float
+    config: PreprocessConfig
+    gt_mask: str | None = None
+    raw_paths: tuple[str, ...] = ()
+
+
+@dataclass
+class ViewRecord:
+    """A finished view (also stored as view.json): frames used, problems, flare scores, rejects, IoU."""
+
+    group: str
+    camera: str
+    key: str
+    lights: list[int]  # lights with a valid processed frame (in the statistics)
+    problems: dict[str, str]  # light -> reason (frames that could not be processed)
+    problem_files: dict[str, list[float]]  # light -> [size, mtime] of the raw file when it failed
+    flare_scores: dict[str, float]  # light -> score
+    rejected: list[int]
+    foreground_fraction: float
+    exposure_level: float  # high percentile of the mean image's foreground luminance
+    iou: float | None = None
+    seconds: float = 0.0
+    chunks: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def view(self) -> ViewId:
+        return ViewId(self.group, self.camera)
+
+
+# ---- helpers ------------------------------------------------------------------------------------------------
+def _partial_path(work: WorkDir, view: ViewId, index: int, key: str) -> Path:
+    return work.view_dir(view) / PARTIALS / f"chunk{index:04d}-{key}.npz"
+
+
+def _chunks(lights: list[int], size: int) -> list[tuple[int, ...]]:
+    return [tuple(lights[i : i + size]) for i in range(0, len(lights), size)]
+
+
+def _in_dask_worker() -> bool:
+    try:
+        from distributed import get_worker
+
+        get_worker()
+        return True
+    except (ImportError, ValueError):
+        return False
+
+
+def _file_signature(path: str) -> list[float]:
+    try:
+        st = os.stat(path)
+        return [float(st.st_size), float(st.st_mtime)]
+    except OSError:
+        return [-1.0, -1.0]
+
+
+def _reason(e: BaseException) -> str:
+    if isinstance(e, LightstageError):
+        return str(e)
+    text = str(e).strip().splitlines()
+    return f"{type(e).__name__}: {text[0][:200]}" if text else type(e).__name__
+
+
+# ---- the chunk task -------------------------------------------------------------------------------------------
+def process_chunk(job: ChunkJob) -> ChunkRecord:
+    """Downscale (or read back) every frame of a chunk, accumulate its statistics and thumbnails, and save
+    them as the chunk's partial file. Per-frame problems are recorded, never raised."""
+    from lightstage.preprocess.downscale import decode_raw, downscale
+    from lightstage.preprocess.flare import lit_threshold, thumbnail
+    from lightstage.preprocess.processed import (
+        processed_ok,
+        read_processed_half,
+        to_float,
+        to_half,
+        write_processed,
+    )
+    from lightstage.preprocess.stats import StatsAccumulator, luminance
+
+    if _in_dask_worker():
+        from lightstage.threads import set_library_threads
+
+        set_library_threads(1)
+    start = time.perf_counter()
+    work = WorkDir.at(job.work_root)
+    view = ViewId(job.group, job.camera)
+    cfg = job.config
+    partial = _partial_path(work, view, job.index, cfg.stats_key())
+    if partial.is_file():
+        try:
+            with np.load(partial, allow_pickle=False) as d:
+                records = json.loads(str(d["records"]))
+            return ChunkRecord(
+                job.group,
+                job.camera,
+                job.index,
+                problems=tuple((int(k), v) for k, v in records["problems"]),
+                seconds=time.perf_counter() - start,
+                resumed=True,
+            )
+        except (OSError, ValueError, KeyError):
+            partial.unlink(missing_ok=True)  # unreadable: redo the chunk
+    W, H = job.raw_size
+    w, h = W // DOWNSCALE, H // DOWNSCALE
+    acc = StatsAccumulator(h, w)
+    thumbs, sthumbs, taus = [], [], []
+    problems: list[tuple[int, str]] = []
+    processed = reused = 0
+    for light, raw in zip(job.lights, job.raw_paths, strict=True):
+        out = work.frame(FrameId(job.group, job.camera, light))
+        try:
+            if processed_ok(out, (w, h)):
+                rgb_h, sat = read_processed_half(out, (w, h))
+                reused += 1
+            else:
+                pixels = decode_raw(raw, (W, H))
+                small = downscale(pixels, job.cutoff, cfg.band_rows)
+                del pixels
+                rgb = small.rgb
+                if job.exposure_scale != 1.0:
+                    rgb *= np.float32(job.exposure_scale)
+                rgb_h = to_half(rgb)
+                bad = np.count_nonzero(~np.isfinite(rgb_h))
+                if bad:
+                    raise LightstageError(
+                        f"{raw}: non-finite pixels (NaN/Inf, or beyond the half range) in {bad} processed samples"
+                    )
+                sat = small.saturated
+                write_processed(out, rgb_h, sat, cfg.compression)
+                processed += 1
+            rgb32 = to_float(rgb_h)
+            lum = luminance(rgb32)
+            th = thumbnail(lum, sat, cfg.flare_thumb)
+            tau = lit_threshold(th, job.cutoff)
+            acc.add(light, rgb32, sat, tau, lum)
+            thumbs.append(th.lum)
+            sthumbs.append(th.saturated.astype(np.float16))
+            taus.append(tau)
+        except Exception as e:  # noqa: BLE001 - one bad frame must not stop the batch
+            if isinstance(e, MemoryError | KeyboardInterrupt):
+                raise
+            problems.append((light, _reason(e)))
+    stats = acc.finish()
+    records = {"problems": problems, "processed": processed, "reused": reused}
+    th_shape = _thumb_shape(h, w, cfg.flare_thumb)
+    stats.save(
+        partial,
+        extras={
+            "thumbs": np.stack(thumbs) if thumbs else np.zeros((0, *th_shape), np.float32),
+            "sthumbs": np.stack(sthumbs) if sthumbs else np.zeros((0, *th_shape), np.float16),
+            "taus": np.asarray(taus, np.float64),
+            "records": np.array(json.dumps(records)),
+        },
+    )
+    return ChunkRecord(
+        job.group, job.camera, job.index, processed, reused, tuple(problems), time.perf_counter() - start
+    )
+
+
+def _thumb_shape(h: int, w: int, factor: int) -> tuple[int, int]:
+    return (max(1, h // factor), max(1, w // factor))
+
+
+# ---- the view task --------------------------------------------------------------------------------------------
+def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -> ViewRecord:
+    """Merge a view's chunk partials (tree), segment, score flares, write the view's outputs; view.json
+    last. `chunk_records` (from this run's chunk tasks) only feed the record's timings."""
+    from lightstage.capture.frames import write_exr, write_image
+    from lightstage.preprocess.flare import flare_scores
+    from lightstage.preprocess.processed import to_half
+    from lightstage.preprocess.segment import iou, segment, zone_map
+    from lightstage.preprocess.stats import ViewStats, empty_stats, merge_tree
+
+    start = time.perf_counter()
+    work = WorkDir.at(job.work_root)
+    view = ViewId(job.group, job.camera)
+    cfg = job.config
+    key = cfg.stats_key()
+    w, h = job.size
+    thumbs: list[np.ndarray] = []
+    sthumbs: list[np.ndarray] = []
+    taus: list[np.ndarray] = []
+    problems: dict[str, str] = {}
+    paths = [_partial_path(work, view, i, key) for i in range(job.chunks)]
+    missing = [p for p in paths if not p.is_file()]
+    if missing:
+        raise LightstageError(f"{view}: chunk statistics missing ({missing[0]}); rerun to resume")
+
+    def parts() -> Iterator[ViewStats]:
+        for p in paths:
+            s = ViewStats.load(p)
+            thumbs.append(s.extras["thumbs"])
+            sthumbs.append(s.extras["sthumbs"].astype(np.float32))
+            taus.append(s.extras["taus"])
+            for light, reason in json.loads(str(s.extras["records"]))["problems"]:
+                problems[str(light)] = reason
+            s.extras = {}
+            yield s
+
+    stats = merge_tree(parts()) or empty_stats(h, w)
+    if stats.count == 0:
+        stats = empty_stats(h, w)
+    if stats.mean.shape[:2] != (h, w):
+        raise LightstageError(
+            f"{view}: statistics are {stats.mean.shape[1]}x{stats.mean.shape[0]}, expected {w}x{h}"
+        )
+    mask = segment(stats, cfg)
+    zones = zone_map(mask, cfg.band_width)
+    lum_thumbs = np.concatenate(thumbs) if thumbs else np.zeros((0, 1, 1), np.float32)
+    sat_thumbs = np.concatenate(sthumbs) if sthumbs else np.zeros((0, 1, 1), np.float32)
+    scores = flare_scores(lum_thumbs, sat_thumbs, mask, cfg.flare_dilate, job.cutoff)
+    lights = list(stats.lights)
+    rejected = [lt for lt, s in zip(lights, scores, strict=True) if s > cfg.flare_threshold]
+    mean_lum = stats.mean @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    level = float(np.percentile(mean_lum[mask], cfg.exposure_percentile)) if mask.any() else 0.0
+    gt_iou = None
+    if job.gt_mask and Path(job.gt_mask).is_file():
+        gt_iou = iou(mask, read_gt_mask(job.gt_mask, (w, h)))
+
+    vdir = work.view_dir(view)
+    stats.save(
+        vdir / "stats.npz",
+        extras={
+            "mask": mask,
+            "flare_scores": np.asarray(scores, np.float32),
+            "lit_thresholds": np.concatenate(taus) if taus else np.zeros(0),
+        },
+    )
+    write_exr(work.mean_image(view), to_half(stats.mean), compression=cfg.compression)
+    write_image(work.mask(view), (mask * 255).astype(np.uint8))
+    write_image(work.zones(view), zones)
+    record = ViewRecord(
+        group=job.group,
+        camera=job.camera,
+        key=cfg.view_key(),
+        lights=lights,
+        problems=problems,
+        problem_files={
+            lt: _file_signature(p)
+            for lt, p in zip(map(str, job.lights), job.raw_paths, strict=True)
+            if lt in problems
+        },
+        flare_scores={str(lt): round(float(s), 5) for lt, s in zip(lights, scores, strict=True)},
+        rejected=rejected,
+        foreground_fraction=float(mask.mean()),
+        exposure_level=level,
+        iou=gt_iou,
+        seconds=time.perf_counter() - start,
+        chunks=[asdict(r) for r in chunk_records or []],
+    )
+    write_json_atomic(vdir / VIEW_RECORD, asdict(record))
+    for p in paths:
+        p.unlink(missing_ok=True)
+    try:
+        (vdir / PARTIALS).rmdir()
+    except OSError:
+        pass
+    return record
+
+
+def read_gt_mask(path: str | os.PathLike[str], size: tuple[int, int]) -> np.ndarray:
+    """A full-resolution ground-truth mask PNG, area-downscaled to `size` (w, h): foreground where more than
+    half of the source pixels are (strict majority)."""
+    import cv2
+
+    from lightstage.capture.frames import read_image
+
+    img = read_image(path)[..., 0]
+    m = img > 0.5 * (255.0 if img.max() > 1.0 else 1.0)
+    return cv2.resize(m.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
+
+
+def _view_finished(work: WorkDir, job: ViewJob) -> ViewRecord | None:
+    """The view's record when its outputs are complete and current, else None."""
+    from lightstage.preprocess.processed import processed_ok
+
+    path = work.view_dir(ViewId(job.group, job.camera)) / VIEW_RECORD
+    if not path.is_file():
+        return None
+    try:
+        d = json.loads(path.read_text())
+        record = ViewRecord(**d)
+    except (OSError, ValueError, TypeError):
+        return None
+    if record.key != job.config.view_key():
+        return None
+    v = ViewId(job.group, job.camera)
+    for p in (work.mask(v), work.zones(v), work.mean_image(v), work.view_dir(v) / "stats.npz"):
+        if not p.is_file():
+            return None
+    for lt in record.lights:
+        if not processed_ok(work.frame(FrameId(job.group, job.camera, lt)), job.size):
+            return None
+    for lt, raw in zip(job.lights, job.raw_paths, strict=False):  # a bad frame whose raw file changed
+        sig = record.problem_files.get(str(lt))
+        if sig is not None and _file_signature(raw) != sig:
+            return None
+    if set(record.lights) | {int(k) for k in record.problems} != set(job.lights):
+        return None
+    return record
+
+
+# ---- orchestration --------------------------------------------------------------------------------------------
+def run_preprocess(
+    work: WorkDir, config: PreprocessConfig, client: Any = None, progress: bool = True
+) -> dict[str, Any]:
+    """Preprocess the capture named in WORK/capture.txt into WORK/preprocess; returns a summary dict."""
+    t0 = time.perf_counter()
+    if isinstance(config, dict):
+        config = PreprocessConfig.from_dict(config)
+    config.validate()
+    capture = _open_pointed_capture(work)
+    stage = capture.stage
+    if stage.width % DOWNSCALE or stage.height % DOWNSCALE:
+        raise LightstageError(
+            f"{capture.root / 'stage.yaml'}: resolution {stage.width}x{stage.height} is not a multiple of {DOWNSCALE}"
+        )
+    size = (stage.width // DOWNSCALE, stage.height // DOWNSCALE)
+    lights = [lt.index for lt in stage.lights]
+    view_jobs: list[ViewJob] = []
+    chunk_jobs: dict[ViewId, list[ChunkJob]] = {}
+    for view in capture.views():
+        raw = tuple(str(capture.frame_path(FrameId(view.group, view.camera, lt))) for lt in lights)
+        gt = capture.root / GT_MASKS / view.group / f"{view.camera}.png"
+        chunks = _chunks(lights, config.chunk_lights)
+        view_jobs.append(
+            ViewJob(
+                str(work.root),
+                view.group,
+                view.camera,
+                tuple(lights),
+                len(chunks),
+                size,
+                stage.saturation,
+                config,
+                str(gt) if gt.is_file() else None,
+                raw,
+            )
+        )
+        chunk_jobs[view] = [
+            ChunkJob(
+                str(work.root),
+                view.group,
+                view.camera,
+                i,
+                c,
+                raw[i * config.chunk_lights : i * config.chunk_lights + len(c)],
+                (stage.width, stage.height),
+                stage.saturation,
+                capture.info.exposure_scale,
+                config,
+            )
+            for i, c in enumerate(chunks)
+        ]
+
+    records: dict[ViewId, ViewRecord] = {}
+    todo: list[ViewJob] = []
+    for job in view_jobs:
+        done = _view_finished(work, job)
+        if done is not None:
+            records[done.view] = done
+        else:
+            todo.append(job)
+    finished_before = len(records)
+    errors: list[str] = []
+    chunk_results: list[ChunkRecord] = []
+    t_frames = time.perf_counter()
+    if client is None:
+        _run_local(todo, chunk_jobs, records, chunk_results, errors, progress)
+    else:
+        _run_dask(client, todo, chunk_jobs, records, chunk_results, errors, config, progress)
+    t_views = time.perf_counter() - t_frames
+    t_prev = time.perf_counter()
+    exposure = write_previews(
+        work, [v for v in view_jobs if ViewId(v.group, v.camera) in records], records, config
+    )
+    report = build_report(
+        work, capture, config, view_jobs, records, chunk_results, errors, finished_before, exposure
+    )
+    report["timings"] = {
+        "total_s": round(time.perf_counter() - t0, 3),
+        "frames_and_views_s": round(t_views, 3),
+        "previews_s": round(time.perf_counter() - t_prev, 3),
+        "per_processed_frame_s": round(t_views / max(report["counts"]["processed"], 1), 4)
+        if report["counts"]["processed"]
+        else None,
+    }
+    write_json_atomic(work.report("preprocess"), report)
+    summary = {k: report[k] for k in ("counts", "timings")}
+    if "segmentation" in report:
+        summary["segmentation"] = {k: v for k, v in report["segmentation"].items() if k != "iou"}
+    summary["rejected"] = len(report["rejected_frames"])
+    summary["problems"] = len(report["problems"])
+    summary["errors"] = len(errors)
+    summary["report"] = str(work.report("preprocess"))
+    return summary
+
+
+def _open_pointed_capture(work: WorkDir) -> Capture:
+    pointer = work.capture_pointer
+    if not pointer.is_file():
+        raise LightstageError(f"{pointer}: missing (run `lightstage preprocess CAPTURE --work {work.root}`)")
+    text = pointer.read_text().strip()
+    if not text:
+        raise LightstageError(f"{pointer}: empty (it must hold the capture directory)")
+    return open_capture(text)
+
+
+def _bar(total: int, desc: str, enabled: bool) -> Any:
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="frame", disable=not enabled, dynamic_ncols=True)
+
+
+def _run_local(
+    todo: list[ViewJob],
+    chunk_jobs: dict[ViewId, list[ChunkJob]],
+    records: dict[ViewId, ViewRecord],
+    chunk_results: list[ChunkRecord],
+    errors: list[str],
+    progress: bool,
+) -> None:
+    bar = _bar(sum(len(j.lights) for j in todo), "preprocess", progress)
+    try:
+        for job in todo:
+            view = ViewId(job.group, job.camera)
+            mine = []
+            try:
+                for cj in chunk_jobs[view]:
+                    mine.append(process_chunk(cj))
+                    bar.update(len(cj.lights))
+                chunk_results.extend(mine)
+                rec = process_view(job, mine)
+                records[view] = rec
+            except (LightstageError, OSError) as e:
+                errors.append(f"{view}: {_reason(e)}")
+    finally:
+        bar.close()
+
+
+def _run_dask(
+    client: Any,
+    todo: list[ViewJob],
+    chunk_jobs: dict[ViewId, list[ChunkJob]],
+    records: dict[ViewId, ViewRecord],
+    chunk_results: list[ChunkRecord],
+    errors: list[str],
+    config: PreprocessConfig,
+    progress: bool,
+) -> None:
+    """Chunks as tasks; each view's merge task depends on its chunks. Views are admitted in a bounded
+    window so partial files (and scheduler state) stay bounded."""
+    import uuid
+
+    from distributed import as_completed
+
+    from lightstage.pipelines.cluster import total_threads
+
+    slots = total_threads(client)
+    window_chunks = config.window or 4 * slots
+    prefix = f"preprocess-{uuid.uuid4().hex[:8]}"
+    bar = _bar(sum(len(j.lights) for j in todo), "preprocess", progress)
+    pending = iter(todo)
+    queue = as_completed()
+    in_flight: dict[str, tuple[ViewJob, list[Any]]] = {}
+    chunks_in_flight = 0
+
+    def admit() -> bool:
+        nonlocal chunks_in_flight
+        job = next(pending, None)
+        if job is None:
+            return False
+        view = ViewId(job.group, job.camera)
+        tag = f"{prefix}-{job.group}-{job.camera}"
+        futs = [
+            client.submit(process_chunk, cj, key=f"{tag}-chunk{cj.index}", retries=1, pure=False)
+            for cj in chunk_jobs[view]
+        ]
+        vf = client.submit(_view_after_chunks, job, futs, key=f"{tag}-view", retries=1, pure=False)
+        in_flight[vf.key] = (job, futs)
+        chunks_in_flight += len(futs)
+        queue.add(vf)
+        return True
+
+    while chunks_in_flight < window_chunks and admit():
+        pass
+    try:
+        for vf in queue:
+            job, futs = in_flight.pop(vf.key)
+            chunks_in_flight -= len(futs)
+            view = ViewId(job.group, job.camera)
+            try:
+                rec = vf.result()
+                records[view] = rec
+                chunk_results.extend(ChunkRecord(**c) for c in rec.chunks)
+            except Exception as e:  # noqa: BLE001 - one failed view must not stop the batch
+                errors.append(f"{view}: {_reason(e)}")
+            for f in futs:
+                f.release()
+            vf.release()
+            bar.update(len(job.lights))
+            while chunks_in_flight < window_chunks and admit():
+                pass
+    except BaseException:
+        for job_futs in in_flight.values():
+            for f in job_futs[1]:
+                f.cancel()
+        raise
+    finally:
+        bar.close()
+
+
+def _view_after_chunks(job: ViewJob, chunk_records: list[ChunkRecord]) -> ViewRecord:
+    """Dask entry point: runs once the view's chunk tasks are done (their records are the argument)."""
+    if _in_dask_worker():
+        from lightstage.threads import set_library_threads
+
+        set_library_threads(1)
+    return process_view(job, list(chunk_records))
+
+
+# ---- previews and report ----------------------------------------------------------------------------------------
+def write_previews(
+    work: WorkDir, jobs: list[ViewJob], records: dict[ViewId, ViewRecord], config: PreprocessConfig
+) -> float:
+    """Write wellit.png (8-bit tonemapped mean image, for SfM) and overlay.png for every finished view, with
+    one exposure for the whole capture; views whose previews already use that exposure are skipped."""
+    from lightstage.capture.frames import read_exr, write_image
+    from lightstage.preprocess.segment import overlay, read_mask, zone_map
+    from lightstage.tonemap import tonemap_u8
+
+    levels = [r.exposure_level for r in records.values() if r.exposure_level > 0]
+    exposure = config.exposure or (1.0 / float(np.median(levels)) if levels else 1.0)
+    exposure = float(np.float32(exposure))
+    book_path = work.preprocess_dir / PREVIEWS
+    try:
+        book = json.loads(book_path.read_text()) if book_path.is_file() else {}
+    except (OSError, ValueError):
+        book = {}
+    changed = False
+    for job in jobs:
+        view = ViewId(job.group, job.camera)
+        rec = records[view]
+        stamp = {"exposure": exposure, "view_key": rec.key, "lights": len(rec.lights)}
+        wellit, over = work.wellit(view), work.view_dir(view) / "overlay.png"
+        if book.get(str(view)) == stamp and wellit.is_file() and over.is_file():
+            continue
+        mean = read_exr(work.mean_image(view)).astype(np.float32)
+        img = tonemap_u8(mean, exposure)
+        mask = read_mask(work.mask(view))
+        write_image(wellit, img)
+        write_image(over, overlay(img, mask, zone_map(mask, config.band_width)))
+        book[str(view)] = stamp
+        changed = True
+    if changed:
+        write_json_atomic(book_path, book)
+    return exposure
+
+
+def build_report(
+    work: WorkDir,
+    capture: Capture,
+    config: PreprocessConfig,
+    jobs: list[ViewJob],
+    records: dict[ViewId, ViewRecord],
+    chunk_results: list[ChunkRecord],
+    errors: list[str],
+    finished_before: int,
+    exposure: float,
+) -> dict[str, Any]:
+    """The stage report: counts, problems, flare scores, rejects, flagged views, segmentation IoU."""
+    n_lights = len(capture.stage.lights)
+    problems, rejected, flagged, scores, ious = [], [], [], {}, {}
+    for job in jobs:
+        view = ViewId(job.group, job.camera)
+        rec = records.get(view)
+        if rec is None:
+            continue
+        for lt, reason in sorted(rec.problems.items(), key=lambda kv: int(kv[0])):
+            problems.append({"frame": str(FrameId(view.group, view.camera, int(lt))), "reason": reason})
+        rejected.extend(str(FrameId(view.group, view.camera, lt)) for lt in rec.rejected)
+        scores[str(view)] = rec.flare_scores
+        lost = len(rec.problems) + len(rec.rejected)
+        if n_lights and lost / n_lights > config.max_lost_fraction:
+            flagged.append(
+                {
+                    "view": str(view),
+                    "lost": lost,
+                    "bad": len(rec.problems),
+                    "rejected": len(rec.rejected),
+                    "fraction": round(lost / n_lights, 4),
+                }
+            )
+        if rec.iou is not None:
+            ious[str(view)] = round(rec.iou, 5)
+    counts = {
+        "views": len(jobs),
+        "views_finished": len(records),
+        "views_finished_before": finished_before,
+        "views_failed": len(jobs) - len(records),
+        "frames": len(jobs) * n_lights,
+        "processed": sum(c.processed for c in chunk_results),
+        "reused": sum(c.reused for c in chunk_results),
+        "chunks_resumed": sum(1 for c in chunk_results if c.resumed),
+        "frames_ok": sum(len(r.lights) for r in records.values()),
+        "bad": len(problems),
+        "rejected": len(rejected),
+        "flagged_views": len(flagged),
+    }
+    report: dict[str, Any] = {
+        "stage": "preprocess",
+        "capture": str(capture.root),
+        "config": config.to_dict(),
+        "config_key": config.view_key(),
+        "processed_size": list(jobs[0].size) if jobs else None,
+        "downscale": DOWNSCALE,
+        "exposure": exposure,
+        "counts": counts,
+        "problems": problems,
+        "rejected_frames": rejected,
+        "flagged_views": flagged,
+        "flare": {"threshold": config.flare_threshold, "scores": scores},
+        "warnings": [f"view {f['view']} lost {f['lost']} of {n_lights} frames" for f in flagged],
+        "errors": errors,
+    }
+    if ious:
+        vals = np.array(list(ious.values()))
+        worst = min(ious, key=ious.get)
+        report["segmentation"] = {
+            "ground_truth": True,
+            "iou_mean": round(float(vals.mean()), 5),
+            "iou_worst": round(float(vals.min()), 5),
+            "worst_view": worst,
+            "iou": ious,
+        }
+    return report

@@ -1,0 +1,263 @@
+"""Per-pixel statistics of a view's OLAT stack, accumulated one processed frame at a time and mergeable.
+
+`StatsAccumulator.add(rgb, saturated, lit_threshold)` streams frames (float32 sums within a chunk of lights);
+`finish()` gives a `ViewStats` (count, mean, M2, ...). Two ViewStats over disjoint light sets combine exactly
+with `merge` (Chan et al.'s parallel mean/variance update; counts add, maxima take the max), so chunks of a
+view are processed as independent tasks and merged in a tree (`merge_tree`). Memory is a fixed number of
+images per view, whatever the number of lights.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lightstage.atomic import atomic_path
+from lightstage.errors import LightstageError
+
+# Rec. 709 luminance weights of linear RGB.
+LUMA = (0.2126, 0.7152, 0.0722)
+_LUMA_MATRIX = np.array([LUMA], np.float32)
+
+
+def luminance(rgb: np.ndarray) -> np.ndarray:
+    """(h, w, 3) float32 linear RGB -> (h, w) float32 luminance (OpenCV channel transform, vectorised)."""
+    import cv2
+
+    return cv2.transform(np.ascontiguousarray(rgb, np.float32), _LUMA_MATRIX)
+
+
+@dataclass
+class ViewStats:
+    """Statistics over the frames (lights) of one view; arrays are (h, w[, 3]).
+
+    mean/m2: per-channel mean and sum of squared deviations over all `count` frames (variance = m2/count).
+    peak: max luminance; saturated: frames flagged saturated; lit: unsaturated frames whose luminance
+    exceeded that frame's lit threshold; lum_sum: luminance summed over unsaturated frames.
+    """
+
+    count: int
+    lights: tuple[int, ...]
+    mean: np.ndarray
+    m2: np.ndarray
+    peak: np.ndarray
+    saturated: np.ndarray
+    lit: np.ndarray
+    lum_sum: np.ndarray
+    extras: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def variance(self) -> np.ndarray:
+        return self.m2 / max(self.count, 1)
+
+    @property
+    def unsaturated(self) -> np.ndarray:
+        """(h, w) number of unsaturated frames."""
+        return self.count - self.saturated.astype(np.int64)
+
+    def unsaturated_mean_luminance(self) -> np.ndarray:
+        return (self.lum_sum / np.maximum(self.unsaturated, 1)).astype(np.float32)
+
+    def lit_fraction(self) -> np.ndarray:
+        return (self.lit / np.maximum(self.unsaturated, 1)).astype(np.float32)
+
+    def chroma_variation(self) -> np.ndarray:
+        """(h, w) RMS over channels of the per-channel standard deviation relative to the mean luminance."""
+        std = np.sqrt(np.maximum(self.variance, 0)).mean(axis=-1)
+        return (std / np.maximum(self.mean @ np.array(LUMA, np.float32), 1e-12)).astype(np.float32)
+
+    # ---- merge ---------------------------------------------------------------------------------------
+    def merge(self, other: ViewStats) -> ViewStats:
+        """Statistics of the union of two disjoint light sets (Chan et al. pairwise update)."""
+        if self.mean.shape != other.mean.shape:
+            raise LightstageError(
+                f"cannot merge statistics of shapes {self.mean.shape} and {other.mean.shape}"
+            )
+        overlap = set(self.lights) & set(other.lights)
+        if overlap:
+            raise LightstageError(f"statistics overlap in lights {sorted(overlap)[:5]}")
+        if other.count == 0:
+            return self
+        if self.count == 0:
+            return other
+        na, nb = self.count, other.count
+        n = na + nb
+        delta = other.mean - self.mean
+        mean = self.mean + delta * np.float32(nb / n)
+        m2 = self.m2 + other.m2 + delta * delta * np.float32(na * nb / n)
+        return ViewStats(
+            count=n,
+            lights=tuple(sorted(self.lights + other.lights)),
+            mean=mean.astype(np.float32),
+            m2=m2.astype(np.float32),
+            peak=np.maximum(self.peak, other.peak),
+            saturated=self.saturated + other.saturated,
+            lit=self.lit + other.lit,
+            lum_sum=self.lum_sum + other.lum_sum,
+        )
+
+    # ---- files ---------------------------------------------------------------------------------------
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {
+            "count": np.array(self.count),
+            "lights": np.array(self.lights, dtype=np.int32),
+            "mean": self.mean,
+            "m2": self.m2,
+            "peak": self.peak,
+            "saturated": self.saturated,
+            "lit": self.lit,
+            "lum_sum": self.lum_sum,
+        }
+
+    def save(self, path: str | os.PathLike[str], extras: dict[str, np.ndarray] | None = None) -> None:
+        """Write as an uncompressed .npz, atomically (extra arrays ride along)."""
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as f:
+                np.savez(f, **self.arrays(), **(extras or {}))
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> ViewStats:
+        """Read a file written by `save` (its extra arrays land in `extras`)."""
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as d:
+                data = {k: d[k] for k in d.files}
+        except (OSError, ValueError) as e:
+            raise LightstageError(f"{path}: unreadable statistics ({e})") from None
+        try:
+            stats = cls(
+                count=int(data.pop("count")),
+                lights=tuple(int(x) for x in data.pop("lights")),
+                mean=data.pop("mean"),
+                m2=data.pop("m2"),
+                peak=data.pop("peak"),
+                saturated=data.pop("saturated"),
+                lit=data.pop("lit"),
+                lum_sum=data.pop("lum_sum"),
+            )
+        except KeyError as e:
+            raise LightstageError(f"{path}: statistics lack {e}") from None
+        stats.extras = data
+        return stats
+
+
+def empty_stats(height: int, width: int) -> ViewStats:
+    """Statistics of no frames (the identity of `merge`)."""
+    return ViewStats(
+        count=0,
+        lights=(),
+        mean=np.zeros((height, width, 3), np.float32),
+        m2=np.zeros((height, width, 3), np.float32),
+        peak=np.zeros((height, width), np.float32),
+        saturated=np.zeros((height, width), np.uint16),
+        lit=np.zeros((height, width), np.uint16),
+        lum_sum=np.zeros((height, width), np.float32),
+    )
+
+
+def merge_tree(parts: Iterable[ViewStats]) -> ViewStats | None:
+    """Merge statistics pairwise in a balanced tree, streaming: at most log2(k) + 1 partials are held."""
+    stack: list[tuple[int, ViewStats]] = []  # (level, stats) like a binary counter
+    for part in parts:
+        level, cur = 0, part
+        while stack and stack[-1][0] == level:
+            _, prev = stack.pop()
+            cur = prev.merge(cur)
+            level += 1
+        stack.append((level, cur))
+    if not stack:
+        return None
+    _, out = stack.pop()
+    while stack:
+        _, prev = stack.pop()
+        out = prev.merge(out)
+    return out
+
+
+class StatsAccumulator:
+    """Streams frames of one chunk of lights into float32 sums; `finish` converts to ViewStats."""
+
+    def __init__(self, height: int, width: int):
+        self.height, self.width = height, width
+        self.count = 0
+        self.lights: list[int] = []
+        self.s1 = np.zeros((height, width, 3), np.float32)
+        self.s2 = np.zeros((height, width, 3), np.float32)
+        self.peak = np.zeros((height, width), np.float32)
+        self.saturated = np.zeros((height, width), np.uint16)
+        self.lit = np.zeros((height, width), np.uint16)
+        self.lum_sum = np.zeros((height, width), np.float32)
+
+    def add(
+        self,
+        light: int,
+        rgb: np.ndarray,
+        saturated: np.ndarray,
+        lit_threshold: float,
+        lum: np.ndarray | None = None,
+    ) -> None:
+        """Accumulate one frame: (h, w, 3) float32 rgb, (h, w) bool saturated, its lit threshold."""
+        import cv2
+
+        if rgb.shape != (self.height, self.width, 3):
+            raise LightstageError(f"frame of shape {rgb.shape}, statistics are {self.height}x{self.width}")
+        if lum is None:
+            lum = luminance(rgb)
+        unsat = np.logical_not(saturated).view(np.uint8)
+        cv2.accumulate(rgb, self.s1)
+        cv2.accumulateSquare(rgb, self.s2)
+        np.maximum(self.peak, lum, out=self.peak)
+        np.add(self.saturated, saturated, out=self.saturated, casting="unsafe")
+        cv2.accumulate(lum, self.lum_sum, mask=unsat)
+        lit = cv2.compare(lum, float(lit_threshold), cv2.CMP_GT)  # 255 where lit
+        np.bitwise_and(lit, unsat, out=lit)  # 1 where lit and unsaturated
+        np.add(self.lit, lit, out=self.lit, casting="unsafe")
+        self.count += 1
+        self.lights.append(int(light))
+
+    def finish(self) -> ViewStats:
+        """Statistics of the frames added so far (float64 arithmetic for the sums-to-moments step)."""
+        n = self.count
+        if n == 0:
+            return empty_stats(self.height, self.width)
+        mean = np.empty_like(self.s1)
+        m2 = np.empty_like(self.s2)
+        for r in range(0, self.height, 256):  # row bands keep the float64 temporaries small
+            s1 = self.s1[r : r + 256].astype(np.float64)
+            mean[r : r + 256] = s1 / n
+            m2[r : r + 256] = np.maximum(self.s2[r : r + 256] - s1 * s1 / n, 0.0)
+        return ViewStats(
+            count=n,
+            lights=tuple(self.lights),
+            mean=mean,
+            m2=m2,
+            peak=self.peak.copy(),
+            saturated=self.saturated.copy(),
+            lit=self.lit.copy(),
+            lum_sum=self.lum_sum.copy(),
+        )
+
+
+def direct_stats(
+    frames: list[np.ndarray], saturated: list[np.ndarray], lit_thresholds: list[float], lights: list[int]
+) -> ViewStats:
+    """Reference statistics from the whole stack in memory (float64; tests)."""
+    x = np.stack(frames).astype(np.float64)
+    s = np.stack(saturated)
+    lum = x @ np.array(LUMA)
+    unsat = ~s
+    lit = (lum > np.asarray(lit_thresholds, np.float64)[:, None, None]) & unsat
+    return ViewStats(
+        count=len(frames),
+        lights=tuple(lights),
+        mean=x.mean(axis=0).astype(np.float32),
+        m2=((x - x.mean(axis=0)) ** 2).sum(axis=0).astype(np.float32),
+        peak=lum.max(axis=0).astype(np.float32),
+        saturated=s.sum(axis=0).astype(np.uint16),
+        lit=lit.sum(axis=0).astype(np.uint16),
+        lum_sum=(lum * unsat).sum(axis=0).astype(np.float32),
+    )

@@ -1,0 +1,319 @@
+"""Preprocess: exact downscale, saturation flags, streaming/tree-merged statistics, segmentation IoU on the
+simulator, bad frames, and resuming a killed run with identical outputs."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from lightstage.capture.frames import write_exr
+from lightstage.capture.layout import FrameId, ViewId, open_capture
+from lightstage.errors import LightstageError
+from lightstage.preprocess.config import PreprocessConfig
+from lightstage.preprocess.downscale import downscale, downscale_reference, saturation_half
+from lightstage.preprocess.processed import processed_ok, read_processed, to_half, write_processed
+from lightstage.preprocess.run import run_preprocess
+from lightstage.preprocess.stats import StatsAccumulator, direct_stats, merge_tree
+from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND, WorkDir
+
+CUTOFF = 4.4019
+
+
+def _frame(rng: np.random.Generator, h: int, w: int, dtype=np.float16) -> np.ndarray:
+    """Wide dynamic range test frame: exponentially distributed values, some clipped at the cutoff."""
+    x = rng.exponential(0.3, (h, w, 3)) * rng.choice([1e-3, 1.0, 20.0], (h, w, 1), p=[0.3, 0.6, 0.1])
+    x = np.minimum(x, float(saturation_half(CUTOFF)))
+    return x.astype(dtype)
+
+
+# ---- downscale ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("dtype", [np.float16, np.float32])
+def test_downscale_equals_float64_box_mean(dtype) -> None:
+    rng = np.random.default_rng(1)
+    px = _frame(rng, 72, 96, dtype)  # 72 rows: not a multiple of the band height below
+    out = downscale(px, CUTOFF, band_rows=16)
+    ref = downscale_reference(px, CUTOFF)
+    assert out.rgb.shape == (18, 24, 3) and out.rgb.dtype == np.float32
+    # float32 sums of 16 samples: relative error at float32 rounding level, far below half precision
+    np.testing.assert_allclose(out.rgb, ref.rgb, rtol=2e-7, atol=0)
+    np.testing.assert_array_equal(out.saturated, ref.saturated)
+    assert out.saturated.any() and not out.saturated.all()
+
+
+def test_saturation_flags_any_of_sixteen_samples() -> None:
+    px = np.full((16, 16, 3), 0.5, np.float16)
+    cut = saturation_half(CUTOFF)
+    assert float(cut) >= CUTOFF and float(np.nextafter(cut, np.float16(0))) < CUTOFF
+    px[5, 9, 2] = cut  # exactly the smallest half >= cutoff, blue only: block (1, 2)
+    px[14, 0, 0] = np.nextafter(cut, np.float16(0))  # just below: not saturated
+    px[0, 15, 1] = 60000.0  # far above (bulb): block (0, 3)
+    out = downscale(px, CUTOFF)
+    expected = np.zeros((4, 4), bool)
+    expected[1, 2] = expected[0, 3] = True
+    np.testing.assert_array_equal(out.saturated, expected)
+    np.testing.assert_array_equal(downscale(px.astype(np.float32), CUTOFF).saturated, expected)
+
+
+def test_processed_frame_roundtrip_and_validity(tmp_path: Path) -> None:
+    rng = np.random.default_rng(2)
+    d = downscale(_frame(rng, 32, 48), CUTOFF)
+    path = tmp_path / "f.exr"
+    write_processed(path, to_half(d.rgb), d.saturated)
+    rgb, sat = read_processed(path, (12, 8))
+    np.testing.assert_array_equal(rgb, d.rgb.astype(np.float16).astype(np.float32))
+    np.testing.assert_array_equal(sat, d.saturated)
+    assert processed_ok(path, (12, 8))
+    assert not processed_ok(path, (12, 9))  # wrong size
+    data = path.read_bytes()
+    (tmp_path / "cut.exr").write_bytes(data[: len(data) // 2])  # what a non-atomic killed write would leave
+    assert not processed_ok(tmp_path / "cut.exr", (12, 8))
+    assert not processed_ok(tmp_path / "absent.exr", (12, 8))
+
+
+# ---- statistics -------------------------------------------------------------------------------------------------
+def test_streaming_stats_equal_direct_and_tree_merge_equals_whole() -> None:
+    rng = np.random.default_rng(3)
+    k, h, w = 11, 9, 13
+    frames = [(_frame(rng, h, w).astype(np.float32)) for _ in range(k)]
+    sats = [rng.random((h, w)) < 0.05 for _ in range(k)]
+    taus = list(rng.uniform(0.05, 0.2, k))
+    lights = list(range(k))
+    ref = direct_stats(frames, sats, taus, lights)
+
+    def accumulate(idx: list[int]):
+        acc = StatsAccumulator(h, w)
+        for i in idx:
+            acc.add(i, frames[i], sats[i], taus[i])
+        return acc.finish()
+
+    whole = accumulate(lights)
+    tree = merge_tree(accumulate(lights[i : i + 3]) for i in range(0, k, 3))
+    for s in (whole, tree):
+        assert s.count == k and s.lights == tuple(lights)
+        np.testing.assert_allclose(s.mean, ref.mean, rtol=1e-6, atol=1e-7)
+        np.testing.assert_allclose(s.variance, ref.variance, rtol=1e-4, atol=1e-6)
+        np.testing.assert_allclose(s.peak, ref.peak, rtol=1e-6)
+        np.testing.assert_array_equal(s.saturated, ref.saturated)
+        np.testing.assert_array_equal(s.lit, ref.lit)
+        np.testing.assert_allclose(s.lum_sum, ref.lum_sum, rtol=1e-5, atol=1e-6)
+    # a different tree over the same lights agrees too; overlapping sets are refused
+    other = accumulate([0, 5, 9]).merge(accumulate([1, 2, 3, 4, 6, 7, 8, 10]))
+    np.testing.assert_allclose(other.mean, whole.mean, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(other.m2, whole.m2, rtol=1e-4, atol=1e-6)
+    with pytest.raises(LightstageError, match="overlap"):
+        accumulate([0, 1]).merge(accumulate([1, 2]))
+
+
+def test_config_from_dict_names_bad_keys() -> None:
+    assert PreprocessConfig.from_dict({"flare_threshold": 1, "compression": "piz"}).flare_threshold == 1.0
+    with pytest.raises(LightstageError, match="preprocess.nope: unknown key"):
+        PreprocessConfig.from_dict({"nope": 1})
+    with pytest.raises(LightstageError, match="preprocess.band_width: expected int"):
+        PreprocessConfig.from_dict({"band_width": "wide"})
+    with pytest.raises(LightstageError, match="preprocess.compression"):
+        PreprocessConfig.from_dict({"compression": "dwaa"})
+
+
+# ---- whole stage on the simulator -------------------------------------------------------------------------------
+def _subset_capture(src: Path, dst: Path, groups: int, cameras: int) -> Path:
+    """A capture with the first groups/cameras of `src` (frames copied, so they can be damaged)."""
+    cap = open_capture(src)
+    stage = dataclasses.replace(
+        cap.stage, groups=cap.stage.groups[:groups], cameras=cap.stage.cameras[:cameras]
+    )
+    dst.mkdir(parents=True)
+    plain = json.loads(json.dumps(stage.to_dict(), default=float))  # numpy scalars -> plain floats
+    (dst / "stage.yaml").write_text(yaml.safe_dump(plain, sort_keys=False))
+    shutil.copy(src / "capture.yaml", dst / "capture.yaml")
+    for v in open_capture(dst).views():
+        shutil.copytree(src / "frames" / v.group / v.camera, dst / "frames" / v.group / v.camera)
+        gt = src / "ground_truth" / "masks" / v.group / f"{v.camera}.png"
+        (dst / "ground_truth" / "masks" / v.group).mkdir(parents=True, exist_ok=True)
+        shutil.copy(gt, dst / "ground_truth" / "masks" / v.group / gt.name)
+    return dst
+
+
+def _work(tmp: Path, capture: Path) -> WorkDir:
+    work = WorkDir.at(tmp)
+    work.root.mkdir(parents=True, exist_ok=True)
+    work.capture_pointer.write_text(str(capture) + "\n")
+    return work
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tiny_capture: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[WorkDir, dict]:
+    work = _work(tmp_path_factory.mktemp("work"), tiny_capture)
+    summary = run_preprocess(work, PreprocessConfig(), progress=False)
+    return work, summary
+
+
+def test_segmentation_iou_against_ground_truth_on_tiny(tiny_run) -> None:
+    work, summary = tiny_run
+    report = json.loads(work.report("preprocess").read_text())
+    seg = report["segmentation"]
+    # tiny is 64x43 after downscaling: a one-pixel boundary error is several % of IoU here
+    assert seg["iou_mean"] >= 0.95, seg
+    assert seg["iou_worst"] >= 0.90, seg
+    assert summary["counts"]["processed"] == report["counts"]["frames"] == 9 * 4 * 12
+    assert report["problems"] == [] and report["errors"] == []
+
+
+def test_outputs_of_a_view(tiny_run, tiny_capture: Path) -> None:
+    import cv2
+
+    from lightstage.capture.frames import read_exr
+
+    work, _ = tiny_run
+    view = ViewId("040", "cam01")
+    rgb, sat = read_processed(work.frame(FrameId("040", "cam01", 6)), (64, 43))
+    assert rgb.shape == (43, 64, 3) and sat.shape == (43, 64)
+    mask = cv2.imread(str(work.mask(view)), cv2.IMREAD_UNCHANGED)
+    zones = cv2.imread(str(work.zones(view)), cv2.IMREAD_UNCHANGED)
+    wellit = cv2.imread(str(work.wellit(view)), cv2.IMREAD_UNCHANGED)
+    assert mask.dtype == np.uint8 and set(np.unique(mask)) == {0, 255}
+    assert set(np.unique(zones)) == {ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND}
+    assert np.all(zones[mask == 0] != ZONE_FOREGROUND) and np.all(zones[mask == 255] != ZONE_BACKGROUND)
+    assert wellit.shape == (43, 64, 3) and wellit.dtype == np.uint8 and wellit.max() > 100
+    assert (work.view_dir(view) / "overlay.png").is_file()
+    mean = read_exr(work.mean_image(view)).astype(np.float32)
+    stack = [read_processed(work.frame(FrameId("040", "cam01", lt)))[0] for lt in range(12)]
+    np.testing.assert_allclose(mean, np.mean(stack, axis=0), rtol=2e-3, atol=1e-6)  # half-rounded mean
+    # the simulator's flares are found: strong flare frames score above every frame without a nuisance
+    report = json.loads(work.report("preprocess").read_text())
+    nuisances = json.loads((tiny_capture / "ground_truth" / "nuisances.json").read_text())
+    flares = {(f["group"], f["camera"], f["light"]) for f in nuisances["flares"] if f["strength"] > 0.05}
+    any_nuisance = {
+        (f["group"], f["camera"], f["light"]) for f in nuisances["flares"] + nuisances["bulbs_in_view"]
+    }
+    scores = report["flare"]["scores"]
+    clean = [
+        s for v, d in scores.items() for lt, s in d.items() if (*v.split("/"), int(lt)) not in any_nuisance
+    ]
+    flared = [scores[f"{g}/{c}"][str(lt)] for g, c, lt in flares]
+    assert flared and min(flared) > 10 * max(clean)
+    assert report["rejected_frames"]
+    assert set(report["rejected_frames"]) <= {f"{g}/{c}/{lt:03d}" for g, c, lt in any_nuisance}
+
+
+def test_bad_frames_are_reported_and_skipped(tiny_capture: Path, tmp_path: Path) -> None:
+    cap = _subset_capture(tiny_capture, tmp_path / "cap", groups=1, cameras=2)
+    frames = cap / "frames" / "000"
+    (frames / "cam00" / "003.exr").unlink()  # missing
+    data = (frames / "cam00" / "004.exr").read_bytes()
+    (frames / "cam00" / "004.exr").write_bytes(data[: len(data) // 3])  # truncated
+    (frames / "cam00" / "005.exr").write_bytes(b"not an exr at all")  # garbage
+    write_exr(frames / "cam01" / "001.exr", np.zeros((172, 200, 3), np.float16))  # wrong size
+    nan = np.full((172, 256, 3), 0.1, np.float16)
+    nan[7, 9, 1] = np.nan
+    write_exr(frames / "cam01" / "002.exr", nan)  # non-finite
+    work = _work(tmp_path / "work", cap)
+    summary = run_preprocess(work, PreprocessConfig(max_lost_fraction=0.3), progress=False)
+    report = json.loads(work.report("preprocess").read_text())
+    reasons = {p["frame"]: p["reason"] for p in report["problems"]}
+    assert set(reasons) == {
+        "000/cam00/003",
+        "000/cam00/004",
+        "000/cam00/005",
+        "000/cam01/001",
+        "000/cam01/002",
+    }
+    assert "not found" in reasons["000/cam00/003"]
+    assert "172" in reasons["000/cam01/001"] and "200" in reasons["000/cam01/001"]
+    assert "non-finite" in reasons["000/cam01/002"]
+    assert report["counts"]["frames_ok"] == 24 - 5 and summary["problems"] == 5
+    assert not work.frame(FrameId("000", "cam00", 4)).exists()
+    assert work.mask(ViewId("000", "cam00")).is_file() and work.mask(ViewId("000", "cam01")).is_file()
+    lost = {v: 0 for v in ("000/cam00", "000/cam01")}
+    for frame in list(reasons) + report["rejected_frames"]:
+        lost[frame[:9]] += 1
+    flagged = {f["view"] for f in report["flagged_views"]}
+    assert flagged == {v for v, n in lost.items() if n / 12 > 0.3} and "000/cam00" in flagged
+    # a rerun keeps the finished views; fixing a bad frame redoes only its view
+    shutil.copy(tiny_capture / "frames" / "000" / "cam01" / "002.exr", frames / "cam01" / "002.exr")
+    run_preprocess(work, PreprocessConfig(max_lost_fraction=0.3), progress=False)
+    again = json.loads(work.report("preprocess").read_text())
+    assert again["counts"]["views_finished_before"] == 1 and again["counts"]["processed"] == 1
+    assert "000/cam01/002" not in {p["frame"] for p in again["problems"]}
+
+
+def _snapshot(work: WorkDir) -> dict[str, bytes]:
+    """Every output file except the report (timings) and the previews book."""
+    out = {}
+    for p in sorted(work.preprocess_dir.rglob("*")):
+        if not p.is_file():
+            continue
+        if p.suffix == ".npz":  # zip members carry timestamps: compare the arrays
+            with np.load(p) as d:
+                out[str(p.relative_to(work.root))] = b"".join(k.encode() + d[k].tobytes() for k in d.files)
+        elif p.name != "view.json":
+            out[str(p.relative_to(work.root))] = p.read_bytes()
+        else:
+            d = json.loads(p.read_text())
+            d.pop("seconds"), d.pop("chunks")
+            out[str(p.relative_to(work.root))] = json.dumps(d, sort_keys=True).encode()
+    return out
+
+
+@pytest.mark.slow
+def test_killed_run_resumes_with_identical_outputs(tiny_capture: Path, tmp_path: Path) -> None:
+    cap = _subset_capture(tiny_capture, tmp_path / "cap", groups=2, cameras=2)
+    config = tmp_path / "pp.yaml"
+    config.write_text("chunk_lights: 4\n")
+    cmd = [sys.executable, "-m", "lightstage.pipelines.cli", "preprocess", str(cap), "--config", str(config)]
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    killed = WorkDir.at(tmp_path / "killed")
+    proc = subprocess.Popen([*cmd, "--work", str(killed.root), "--no-progress"], env=env)
+    deadline = time.time() + 120
+    try:
+        while time.time() < deadline and proc.poll() is None:
+            done = list((killed.preprocess_dir / "frames").rglob("[0-9]*.exr"))
+            if len(done) >= 20:  # mid-way: some views finished, one partly
+                break
+            time.sleep(0.02)
+        assert proc.poll() is None, "the run finished before it could be killed"
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        proc.wait()
+    assert not killed.report("preprocess").exists()
+    n_before = len(list((killed.preprocess_dir / "frames").rglob("[0-9]*.exr")))
+    assert 0 < n_before < 48
+    subprocess.run(
+        [*cmd, "--work", str(killed.root), "--no-progress"], env=env, check=True, capture_output=True
+    )
+    report = json.loads(killed.report("preprocess").read_text())
+    assert report["counts"]["reused"] + report["counts"]["processed"] <= 48
+    assert report["counts"]["processed"] <= 48 - n_before + 2  # only unfinished frames were decoded again
+    clean = WorkDir.at(tmp_path / "clean")
+    subprocess.run(
+        [*cmd, "--work", str(clean.root), "--no-progress"], env=env, check=True, capture_output=True
+    )
+    a, b = _snapshot(killed), _snapshot(clean)
+    assert not [k for k in a if Path(k).name.startswith(".")], "temporary files left behind"
+    assert sorted(a) == sorted(b)
+    assert [k for k in a if a[k] != b[k]] == []
+
+
+def test_dask_client_gives_the_same_outputs(tiny_capture: Path, tmp_path: Path) -> None:
+    from distributed import Client, LocalCluster
+
+    cap = _subset_capture(tiny_capture, tmp_path / "cap", groups=1, cameras=2)
+    local = _work(tmp_path / "local", cap)
+    run_preprocess(local, PreprocessConfig(chunk_lights=5), progress=False)
+    dist = _work(tmp_path / "dask", cap)
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as lc:
+        with Client(lc) as client:
+            summary = run_preprocess(dist, PreprocessConfig(chunk_lights=5), client=client, progress=False)
+    assert summary["counts"]["processed"] == 24 and summary["errors"] == 0
+    a, b = _snapshot(local), _snapshot(dist)
+    assert sorted(a) == sorted(b) and [k for k in a if a[k] != b[k]] == []
