@@ -198,6 +198,43 @@ def estimate_bounds(views: list[_View], cfg: BoundsConfig) -> tuple[Bounds, dict
     return Bounds(lo, hi, centre, scale), info
 
 
+def write_bounds_picture(path: Path, work: WorkDir, calib: Any, views: list[ViewId], bounds: Bounds) -> None:
+    """PNG: the box's 12 edges projected onto up to 4 views (well-lit image if present, else the mask), tiled."""
+    import cv2
+
+    from lightstage.capture.frames import write_image
+
+    lo, hi = bounds.box_min, bounds.box_max
+    corners = np.array(
+        [[(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
+    )
+    edges = [(a, b) for a in range(8) for b in range(a + 1, 8) if bin(a ^ b).count("1") == 1]
+    tiles = []
+    for v in views:
+        cam = calib.views[v].camera()
+        if work.wellit(v).is_file():
+            img = cv2.imread(str(work.wellit(v)), cv2.IMREAD_COLOR)
+        else:
+            img = None
+        if img is None or img.shape[:2] != (cam.height, cam.width):
+            img = np.repeat(read_mask(work.mask(v)).astype(np.uint8)[..., None] * 255, 3, axis=2)
+        scale = max(1, 512 // max(cam.width, cam.height))
+        img = cv2.resize(img, (cam.width * scale, cam.height * scale), interpolation=cv2.INTER_NEAREST)
+        xc = corners @ cam.R.T + cam.t
+        if np.any(xc[:, 2] <= 0):
+            continue
+        uv = (xc[:, :2] / xc[:, 2:]) * np.diag(cam.K)[:2] + cam.K[:2, 2]
+        for a, b in edges:
+            p0 = tuple(int(round(x)) for x in uv[a] * scale)
+            p1 = tuple(int(round(x)) for x in uv[b] * scale)
+            cv2.line(img, p0, p1, (0, 200, 255), 1, cv2.LINE_AA)
+        tiles.append(img[..., ::-1])  # BGR -> RGB
+    if tiles:
+        h = max(t.shape[0] for t in tiles)
+        tiles = [np.pad(t, ((0, h - t.shape[0]), (0, 0), (0, 0))) for t in tiles]
+        write_image(path, np.ascontiguousarray(np.concatenate(tiles, axis=1)))
+
+
 def _training_views(work: WorkDir, calib_views: list[ViewId]) -> list[ViewId]:
     if work.split.is_file():
         from lightstage.dataset.split import load_split
@@ -264,6 +301,8 @@ def run_bounds(
         "config": asdict(config),
     }
     write_json_atomic(work.bounds, record)
+    picture = work.root / "bounds.png"
+    write_bounds_picture(picture, work, calib, names[:4], bounds)
     summary = {
         "stage": "bounds",
         "skipped": False,
@@ -273,6 +312,7 @@ def run_bounds(
         "missing_masks": len(missing),
         "occupied_voxels": record["occupied_voxels"],
         "output": str(work.bounds),
+        "picture": str(picture),
         "seconds": round(time.perf_counter() - t0, 3),
         "warnings": [f"{len(missing)} view masks missing"] if missing else [],
         "errors": [],

@@ -509,10 +509,13 @@ def run_shard(
         m = json.loads(manifest_path.read_text())
         if m.get("inputs_hash") == inputs_hash and all((root / s["file"]).is_file() for s in m["shards"]):
             return _summary(work, m, skipped=True, seconds=time.perf_counter() - t0)
-    if config.force and root.exists():
-        shutil.rmtree(root)
     tmp_dir = root / "tmp"
+    plan_path = tmp_dir / "plan.json"
+    stale = not plan_path.is_file() or json.loads(plan_path.read_text()).get("inputs_hash") != inputs_hash
+    if root.exists() and (config.force or stale):
+        shutil.rmtree(root)  # outputs of other inputs (or forced): never mix them with this run's
     tmp_dir.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(plan_path, {"inputs_hash": inputs_hash})
     workers = config.workers or min(os.cpu_count() or 1, 4)
     cfg_dict = asdict(config)
 

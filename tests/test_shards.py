@@ -25,7 +25,7 @@ from lightstage.dataset.shards import (
 from lightstage.dataset.split import SplitConfig, load_split, run_split
 from lightstage.errors import LightstageError
 from lightstage.pipelines.cli import main
-from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND
+from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND, WorkDir
 
 CFG = ShardConfig(rays_per_image=64, rays_per_shard=256, workers=1, border_px=4)
 
@@ -199,7 +199,6 @@ def test_tiny_simulated_capture_end_to_end(tiny_capture, tmp_path):
     run_mod = pytest.importorskip("lightstage.preprocess.run")
     from lightstage.dataset.loader import RayShardDataset
     from lightstage.preprocess.config import PreprocessConfig
-    from lightstage.workdir import WorkDir
 
     work = WorkDir.at(tmp_path / "work")
     work.root.mkdir()
@@ -222,3 +221,26 @@ def test_tiny_simulated_capture_end_to_end(tiny_capture, tmp_path):
     batch = next(iter(RayShardDataset(work.shards_dir, batch_size=1024)))
     assert batch["rgb"][:512].mean() > 0  # foreground rays carry light
     assert (batch["rgb"][-128:] == 0).all()  # background target 0
+
+
+def test_cli_and_changed_config_rewrites(tmp_path, capsys):
+    m0 = _sharded_copy(tmp_path, CFG)
+    work = tmp_path / "work"
+    assert (work / "bounds.png").is_file()
+    assert (
+        main(["shard", str(work), "--rays-per-image", "64", "--rays-per-shard", "256", "--workers", "1"]) == 0
+    )
+    out = capsys.readouterr().out
+    assert "rays in" in out and "bytes/ray" in out
+    assert main(["shard", str(work), "--verify"]) == 0
+    assert "verified" in capsys.readouterr().out
+    # another seed: every shard is rewritten (no stale shard of the old plan is reused)
+    s = run_shard(
+        WorkDir.at(work),
+        ShardConfig(rays_per_image=64, rays_per_shard=256, workers=1, border_px=4, seed=1),
+        progress=False,
+    )
+    assert not s["skipped"]
+    m1 = load_manifest(work / "shards")
+    assert not {r["sha256"] for r in m1["shards"]} & {r["sha256"] for r in m0["shards"]}
+    assert verify_shards(work / "shards") == len(m1["shards"])
