@@ -80,7 +80,7 @@ def _shard(args: argparse.Namespace) -> int:
         n = verify_shards(work.shards_dir)
         print(f"{n} shards verified against {work.shards_dir / 'manifest.json'}")
         return 0
-    d = {}
+    d: dict = {"force": True} if args.force else {}
     for key in ("rays_per_shard", "rays_per_image", "workers", "seed"):
         v = getattr(args, key)
         if v is not None:

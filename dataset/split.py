@@ -588,9 +588,10 @@ def _unit(v: np.ndarray) -> np.ndarray:
 # ---- the stage -------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class SplitConfig:
-    """`lightstage split`: protocol name or YAML path; optional stage preset (split without a capture)."""
+    """`lightstage split`: protocol name, YAML path or an inline protocol mapping (the YAML keys); optional stage
+    preset (split without a capture)."""
 
-    protocol: str = "paper"
+    protocol: str | dict[str, Any] = "paper"
     stage_preset: str | None = None
 
     @classmethod
@@ -598,16 +599,22 @@ class SplitConfig:
         unknown = set(d) - {"protocol", "stage_preset"}
         if unknown:
             raise LightstageError(f"split config: unknown key(s) {', '.join(sorted(unknown))}")
-        if "protocol" in d and not isinstance(d["protocol"], str):
-            raise LightstageError(f"split config: protocol: expected a string, got {d['protocol']!r}")
+        if "protocol" in d and not isinstance(d["protocol"], str | dict):
+            raise LightstageError(
+                f"split config: protocol: expected a name, a file or a mapping, got {d['protocol']!r}"
+            )
+        if isinstance(d.get("protocol"), dict):
+            protocol_from_dict(d["protocol"], "split config: protocol")  # validate early, naming the key
         sp = d.get("stage_preset")
         if sp is not None and not isinstance(sp, str):
             raise LightstageError(f"split config: stage_preset: expected a string, got {sp!r}")
         return cls(d.get("protocol", "paper"), sp)
 
 
-def load_protocol(spec: str) -> Protocol:
-    """A built-in protocol name or a YAML file path."""
+def load_protocol(spec: str | dict[str, Any]) -> Protocol:
+    """A built-in protocol name, a YAML file path, or an inline mapping with the YAML keys."""
+    if isinstance(spec, dict):
+        return protocol_from_dict(spec, "split config: protocol")
     if spec in PROTOCOLS:
         return builtin_protocol(spec)
     if Path(spec).is_file():
@@ -665,7 +672,8 @@ def run_split(
     stage = work_stage(work, config.stage_preset)
     protocol = load_protocol(config.protocol)
     excluded = set() if config.stage_preset else rejected_frames(work)
-    split = resolve(protocol, stage, excluded, source=config.protocol)
+    source = config.protocol if isinstance(config.protocol, str) else "split config: protocol"
+    split = resolve(protocol, stage, excluded, source=source)
     split.save(work.split)
     counts = split.counts()
     summary = {

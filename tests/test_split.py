@@ -143,3 +143,15 @@ def test_rejected_frames_are_excluded_and_counted(tmp_path):
     split = load_split(work.split)
     assert FrameId("000", "cam00", 0) not in set(split.train.frames())
     assert split.train.count() == 9 * 3 * 3 - 1 and split.test.count() == 9 * 1 * 1 - 1
+
+
+def test_inline_protocol_in_stage_config(tmp_path):
+    cfg = SplitConfig.from_dict(
+        {"protocol": {"base": "paper", "lights": {"train": "rest"}}, "stage_preset": "paper"}
+    )
+    s = run_split(WorkDir.at(tmp_path), cfg, progress=False)
+    assert s["counts"]["train_lights"] == 321 and s["counts"]["test_lights"] == 10
+    with pytest.raises(LightstageError, match="unknown key"):
+        SplitConfig.from_dict({"protocol": {"lites": {}}})
+    with pytest.raises(LightstageError, match="unknown key"):
+        SplitConfig.from_dict({"protocl": "paper"})
