@@ -639,7 +639,8 @@ def work_stage(work: WorkDir, preset: str | None = None) -> Stage:
 
 
 def rejected_frames(work: WorkDir) -> set[FrameId]:
-    """Frames preprocess rejected (WORK/reports/preprocess.json); empty when the report is absent."""
+    """Frames preprocess rejected (flare: `rejected_frames`) or could not process (`problems`), from
+    WORK/reports/preprocess.json; empty when the report is absent."""
     path = work.report("preprocess")
     if not path.is_file():
         return set()
@@ -649,14 +650,12 @@ def rejected_frames(work: WorkDir) -> set[FrameId]:
         raise LightstageError(f"{path}: unreadable preprocess report ({e})") from None
     items: list[Any] = []
     if isinstance(d, dict):
-        for key in ("rejected_frames", "rejected"):
+        for key in ("rejected_frames", "rejected", "problems"):
             v = d.get(key)
             if isinstance(v, list):
-                items = v
-                break
-            if isinstance(v, dict):  # {frame_id: reason}
-                items = list(v)
-                break
+                items += v
+            elif isinstance(v, dict):  # {frame_id: reason}
+                items += list(v)
     out = set()
     for it in items:
         text = it.get("frame") if isinstance(it, dict) else it

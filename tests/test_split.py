@@ -136,7 +136,13 @@ def test_rejected_frames_are_excluded_and_counted(tmp_path):
     work.report("preprocess").parent.mkdir(parents=True)
     # cam00/000 is a training frame; cam03 light 7 a test frame; 001 is not in the split at all
     work.report("preprocess").write_text(
-        json.dumps({"rejected_frames": ["000/cam00/000", "040/cam03/007", "000/cam00/001"]})
+        json.dumps(
+            {
+                "rejected_frames": ["000/cam00/000", "000/cam00/001"],
+                "problems": [{"frame": "040/cam03/007", "reason": "corrupt"}],
+                "rejected": 2,
+            }
+        )
     )
     s = run_split(work, SplitConfig("paper"), progress=False)
     assert s["counts"]["train_excluded"] == 1 and s["counts"]["test_excluded"] == 1
