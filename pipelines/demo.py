@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from lightstage.atomic import write_json_atomic, write_text_atomic
+from lightstage.pipelines.records import report_path
 from lightstage.workdir import WorkDir
 
 ENVMAP_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "envmaps"
@@ -252,7 +253,7 @@ def write_report(
         "|---|---|---|",
     ]
     for stage in ("validate", "preprocess", "calibrate", "split", "shard", "train", "eval"):
-        rec = _load_json(work.report(stage)).get("pipeline", {})
+        rec = _load_json(report_path(work, stage)).get("pipeline", {})
         took = timings.get(stage, 0.0)
         status = rec.get("status", "?")
         errs = rec.get("errors", 0)

@@ -96,9 +96,16 @@ def read_report(path: Path) -> dict[str, Any] | None:
     return data if isinstance(data, dict) else None
 
 
+def report_path(work: WorkDir, stage: str) -> Path:
+    """The stage's own report file (WORK/reports/<stage>.json; calibrate writes calibration.json)."""
+    from lightstage.pipelines.stages import SPECS
+
+    return work.report(SPECS[stage].report_stem if stage in SPECS else stage)
+
+
 def read_record(work: WorkDir, stage: str) -> dict[str, Any] | None:
     """The pipeline section of a stage's report, or None."""
-    report = read_report(work.report(stage))
+    report = read_report(report_path(work, stage))
     record = report.get(RECORD_KEY) if report else None
     return record if isinstance(record, dict) else None
 
@@ -140,7 +147,7 @@ def summarise_report(report: dict[str, Any] | None, summary: dict[str, Any]) -> 
 
 def write_record(work: WorkDir, stage: str, record: dict[str, Any]) -> None:
     """Merge `record` as the `pipeline` section of WORK/reports/<stage>.json, atomically."""
-    path = work.report(stage)
+    path = report_path(work, stage)
     report = read_report(path) or {"stage": stage}
     report[RECORD_KEY] = {"version": RECORD_VERSION, **record}
     write_json_atomic(path, report)
@@ -149,7 +156,7 @@ def write_record(work: WorkDir, stage: str, record: dict[str, Any]) -> None:
 def invalidate(work: WorkDir, stage: str, outputs: tuple[Path, ...]) -> None:
     """Forget a stage: remove its report first (so a kill during removal still reads as "not done"), then
     its outputs."""
-    report = work.report(stage)
+    report = report_path(work, stage)
     if report.exists():
         report.unlink()
     for path in outputs:

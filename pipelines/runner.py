@@ -230,9 +230,11 @@ class PipelineRunner:
         self._fp_cache.pop(name, None)
         outputs = self.outputs_fingerprint(name)
         summary = _small(summary)
-        report = records.read_report(self.work.report(name))
+        report = records.read_report(records.report_path(self.work, name))
         if report is None:
-            self.log(f"warning: {name} wrote no {self.work.report(name)}; the pipeline record stands alone")
+            self.log(
+                f"warning: {name} wrote no {records.report_path(self.work, name)}; the pipeline record stands alone"
+            )
         record = {
             "stage": name,
             "status": "done",
@@ -250,7 +252,7 @@ class PipelineRunner:
         }
         records.write_record(self.work, name, record)
         errors = record.get("errors", 0)
-        extra = f", {errors} error(s) recorded in {self.work.report(name)}" if errors else ""
+        extra = f", {errors} error(s) recorded in {records.report_path(self.work, name)}" if errors else ""
         self.log(f"{tag} {name}: done in {seconds:.1f} s{extra}")
         return StageResult(name, "ran", reason, seconds, summary)
 
@@ -294,7 +296,7 @@ class PipelineRunner:
             ) from None
         if proc.returncode != 0:
             raise LightstageError(f"torchrun exited with status {proc.returncode}")
-        report = records.read_report(self.work.report("train")) or {}
+        report = records.read_report(records.report_path(self.work, "train")) or {}
         return {k: v for k, v in report.items() if k != records.RECORD_KEY}
 
 

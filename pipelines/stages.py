@@ -38,10 +38,16 @@ class StageSpec:
     # An empty section passes config=None (the stage's own choice, e.g. eval's config stored with the
     # checkpoint) instead of the config class's defaults.
     none_when_empty: bool = False
+    # The stage's own report is WORK/reports/<report>.json (calibrate writes calibration.json).
+    report: str = ""
 
     @property
     def function(self) -> str:
         return f"run_{self.name}"
+
+    @property
+    def report_stem(self) -> str:
+        return self.report or self.name
 
 
 def _outputs_validate(w: WorkDir) -> tuple[Path, ...]:
@@ -95,6 +101,7 @@ SPECS: dict[str, StageSpec] = {
             ("calibrate", "stage", "run", "pipeline"),
             ("CalibrateConfig", "CalibrationConfig"),
             _outputs_calibrate,
+            report="calibration",
         ),
         StageSpec("split", "lightstage.dataset", ("split", "splits"), ("SplitConfig",), _outputs_split),
         StageSpec(
