@@ -17,6 +17,9 @@ from lightstage.cameras import PinholeCamera, pixel_rays
 from lightstage.capture.frames import write_exr, write_image
 from lightstage.capture.sim_scene import KIND_NONE, SimScene, ViewHits, cast_view, first_hit, shade
 
+# Frames with at most this many values share one pool of normals per view (2x the frame).
+POOL_MAX_VALUES = 16_000_000
+
 
 @dataclass(frozen=True)
 class ViewJob:
@@ -96,11 +99,9 @@ def bulb_pixels(scene: SimScene, cam: PinholeCamera, p: np.ndarray) -> tuple[np.
     return rows[free], cols[free]
 
 
-def flare_image(
-    scene: SimScene, cam: PinholeCamera, p: np.ndarray, intensity: float
-) -> tuple[np.ndarray, float]:
-    """Additive lens flare (glow + horizontal streak + ghost) for a light behind the object near the view
-    direction; (None, 0) when there is none. Linear in the light's intensity."""
+def add_flare(img: np.ndarray, scene: SimScene, cam: PinholeCamera, p: np.ndarray, intensity: float) -> float:
+    """Add lens flare (glow + horizontal streak + ghost) in place for a light behind the object near the view
+    direction; returns its strength (0: none). Separable profiles keep it cheap; linear in the intensity."""
     nz = scene.nuisances
     to_light = p - cam.center
     dist = float(np.linalg.norm(to_light))
@@ -108,25 +109,44 @@ def flare_image(
     angle = np.degrees(np.arccos(np.clip(cos_axis, -1, 1)))
     behind = dist > float(np.linalg.norm(cam.center))  # farther than the object (at the origin)
     if angle >= nz.flare_max_angle_deg or not behind:
-        return None, 0.0
+        return 0.0
     strength = nz.flare_gain * intensity / dist**2 * (1.0 - angle / nz.flare_max_angle_deg) ** 2
     pc = cam.R @ p + cam.t
     u = cam.K[0, 0] * pc[0] / pc[2] + cam.K[0, 2]
     v = cam.K[1, 1] * pc[1] / pc[2] + cam.K[1, 2]
-    y, x = np.mgrid[0 : cam.height, 0 : cam.width].astype(np.float32)
-    x += 0.5
-    y += 0.5
+    x = np.arange(cam.width, dtype=np.float64) + 0.5
+    y = np.arange(cam.height, dtype=np.float64) + 0.5
     s = nz.flare_sigma * cam.width
-    glow = np.exp(-((x - u) ** 2 + (y - v) ** 2) / (2 * s * s))
-    streak = np.exp(-(((y - v) / (0.006 * cam.width)) ** 2)) * np.exp(-np.abs(x - u) / (0.35 * cam.width))
+    sg = 0.03 * cam.width
     gu, gv = cam.width - u, cam.height - v  # ghost mirrored through the image centre
-    ghost = np.exp(-((x - gu) ** 2 + (y - gv) ** 2) / (2 * (0.03 * cam.width) ** 2))
-    img = strength * (
-        glow[..., None] * np.array([1.0, 0.95, 0.85], np.float32)
-        + 0.6 * streak[..., None] * np.array([0.8, 0.9, 1.0], np.float32)
-        + 0.35 * ghost[..., None] * np.array([0.5, 0.8, 1.0], np.float32)
+    components = (
+        # (row profile, column profile, weight, colour)
+        (
+            np.exp(-((y - v) ** 2) / (2 * s * s)),
+            np.exp(-((x - u) ** 2) / (2 * s * s)),
+            1.0,
+            (1.0, 0.95, 0.85),
+        ),
+        (
+            np.exp(-(((y - v) / (0.006 * cam.width)) ** 2)),
+            np.exp(-np.abs(x - u) / (0.35 * cam.width)),
+            0.6,
+            (0.8, 0.9, 1.0),
+        ),
+        (
+            np.exp(-((y - gv) ** 2) / (2 * sg * sg)),
+            np.exp(-((x - gu) ** 2) / (2 * sg * sg)),
+            0.35,
+            (0.5, 0.8, 1.0),
+        ),
     )
-    return img.astype(np.float32), float(strength)
+    for rows, cols, weight, colour in components:
+        rows = rows.astype(np.float32)
+        if rows.max() < 1e-7:
+            continue
+        for c in range(3):
+            img[..., c] += np.outer(rows, (strength * weight * colour[c] * cols).astype(np.float32))
+    return float(strength)
 
 
 def add_noise_and_clip(img: np.ndarray, scene: SimScene, cutoff: float, normal: np.ndarray) -> np.ndarray:
@@ -163,9 +183,11 @@ def render_view(job: ViewJob) -> ViewRecord:
     flares: dict[int, float] = {}
     # one seeded pool of standard normals per view; each frame reads a seeded random window of it
     npix = cam.width * cam.height * 3
-    pool = np.random.default_rng([job.seed, 2, job.group_index, job.camera_index]).standard_normal(
-        2 * npix, dtype=np.float32
-    )
+    pool = None
+    if npix <= POOL_MAX_VALUES:
+        pool = np.random.default_rng([job.seed, 2, job.group_index, job.camera_index]).standard_normal(
+            2 * npix, dtype=np.float32
+        )
     for lid, sid, p in zip(job.light_ids, job.light_seed_ids, job.light_positions, strict=True):
         radiance = shade(scene, hits, p, scene.light_intensity)
         if lid in job.clean_lights:
@@ -175,16 +197,20 @@ def render_view(job: ViewJob) -> ViewRecord:
             write_exr(path, clean.reshape(cam.height, cam.width, 3), half=False, compression=job.compression)
         img = bg.copy()
         img.reshape(-1, 3)[hits.index] += radiance  # the background is 0 under the mask
-        flare, strength = flare_image(scene, cam, p, scene.light_intensity)
-        if flare is not None:
-            img += flare
+        strength = add_flare(img, scene, cam, p, scene.light_intensity)
+        if strength > 0:
             flares[lid] = strength
         bulb = bulb_pixels(scene, cam, p)
         if bulb is not None:
             img[bulb[0], bulb[1]] = scene.nuisances.bulb_radiance
             bulbs[lid] = int(bulb[0].size)
-        off = int(np.random.default_rng([job.seed, 3, job.group_index, job.camera_index, sid]).integers(npix))
-        raw = add_noise_and_clip(img, scene, job.saturation, pool[off : off + npix])
+        frame_rng = np.random.default_rng([job.seed, 3, job.group_index, job.camera_index, sid])
+        if pool is not None:
+            off = int(frame_rng.integers(npix))
+            normal = pool[off : off + npix]
+        else:  # large frames: fresh normals per frame (a pool would double the memory)
+            normal = frame_rng.standard_normal(npix, dtype=np.float32)
+        raw = add_noise_and_clip(img, scene, job.saturation, normal)
         path = job.root / job.path_template.format(group=job.group, camera=job.camera, light=lid)
         write_exr(path, raw, half=True, compression=job.compression, attributes=job.attributes)
     return ViewRecord(job.group, job.camera, int(mask.sum()), bulbs, flares, time.perf_counter() - start)

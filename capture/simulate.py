@@ -197,7 +197,13 @@ def simulate_capture(
             "select a subset with --groups, --cameras and --lights"
         )
     full = make_stage(
-        f"sim-{preset}", p.num_cameras, p.num_lights, p.width, p.height, num_groups=p.num_groups
+        f"sim-{preset}",
+        p.num_cameras,
+        p.num_lights,
+        p.width,
+        p.height,
+        num_groups=p.num_groups,
+        camera_distance=p.camera_distance,
     )
     gsel = _parse_indices(groups, len(full.groups), "groups", full.group_names)
     csel = _parse_indices(cameras, len(full.cameras), "cameras", full.camera_ids)
