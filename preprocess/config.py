@@ -24,8 +24,10 @@ class PreprocessConfig:
     chunk_lights: int = 32  # lights per task: a chunk's partial statistics merge with the others in a tree
     window: int = 0  # tasks in flight with a dask client (0: 4 per worker thread)
     # ---- segmentation (on the processed resolution)
-    noise_floor: float = 0.0  # background noise level; 0 estimates it per view from the darkest pixels
-    lit_sigmas: float = 6.0  # a pixel is "lit" in a frame when it exceeds its background by this many sigmas
+    lit_ratio: float = (
+        4.0  # a pixel is lit in a frame when brighter than lit_ratio x the frame's dark level ...
+    )
+    lit_floor: float = 2.0**-13  # ... + lit_floor x the stage's saturation cutoff
     min_lit_fraction: float = 0.12  # foreground: lit in at least this fraction of the unsaturated frames
     max_saturated_fraction: float = 0.5  # foreground pixels are mostly unsaturated
     open_radius: int = 1  # morphological opening radius (pixels)
@@ -81,7 +83,7 @@ class PreprocessConfig:
         for key in ("window", "open_radius", "close_radius", "band_width", "flare_dilate"):
             if getattr(self, key) < 0:
                 raise bad(key, "expected an integer >= 0")
-        for key in ("noise_floor", "lit_sigmas", "centre_weight", "flare_threshold", "exposure"):
+        for key in ("lit_ratio", "lit_floor", "centre_weight", "flare_threshold", "exposure"):
             if not getattr(self, key) >= 0:
                 raise bad(key, "expected a number >= 0")
         for key in (
@@ -100,7 +102,8 @@ class PreprocessConfig:
 
     def stats_key(self) -> str:
         """Hash of what the per-view statistics depend on (a rerun with another value recomputes them)."""
-        return _hash({"chunk_lights": self.chunk_lights, "format": STATS_FORMAT})
+        keys = ("chunk_lights", "lit_ratio", "lit_floor", "flare_thumb")
+        return _hash({**{k: getattr(self, k) for k in keys}, "format": STATS_FORMAT})
 
     def view_key(self) -> str:
         """Hash of everything the per-view outputs depend on."""

@@ -14,10 +14,6 @@ import numpy as np
 
 # Percentile of a frame's thumbnail luminance taken as its dark (background) level.
 DARK_PERCENTILE = 5.0
-# A pixel is lit in a frame when brighter than LIT_RATIO x the frame's dark level + an absolute floor.
-LIT_RATIO = 4.0
-# The floor, relative to the stage's saturation cutoff (0.00054 for the reference stage).
-LIT_FLOOR = 2.0**-13
 
 
 @dataclass(frozen=True)
@@ -39,11 +35,11 @@ def thumbnail(lum: np.ndarray, saturated: np.ndarray, factor: int) -> Thumbnail:
     return Thumbnail(t_lum, t_sat)
 
 
-def lit_threshold(thumb: Thumbnail, cutoff: float) -> float:
-    """Luminance above which a pixel counts as lit in this frame: a multiple of the frame's dark level
-    (robust to flares and exposure) plus a small floor relative to the cutoff."""
+def lit_threshold(thumb: Thumbnail, cutoff: float, ratio: float = 4.0, floor: float = 2.0**-13) -> float:
+    """Luminance above which a pixel counts as lit in this frame: `ratio` x the frame's dark level (robust
+    to flares and exposure) plus `floor` x the cutoff (0.00054 for the reference stage at the default)."""
     dark = float(np.percentile(thumb.lum, DARK_PERCENTILE))
-    return LIT_RATIO * max(dark, 0.0) + LIT_FLOOR * cutoff
+    return ratio * max(dark, 0.0) + floor * cutoff
 
 
 def mask_thumbnail(mask: np.ndarray, dilate: int, shape: tuple[int, int]) -> np.ndarray:

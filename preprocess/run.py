@@ -198,19 +198,15 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
                 rgb = small.rgb
                 if job.exposure_scale != 1.0:
                     rgb *= np.float32(job.exposure_scale)
+                _check_finite(rgb, raw)
                 rgb_h = to_half(rgb)
-                bad = np.count_nonzero(~np.isfinite(rgb_h))
-                if bad:
-                    raise LightstageError(
-                        f"{raw}: non-finite pixels (NaN/Inf, or beyond the half range) in {bad} processed samples"
-                    )
                 sat = small.saturated
                 write_processed(out, rgb_h, sat, cfg.compression)
                 processed += 1
             rgb32 = to_float(rgb_h)
             lum = luminance(rgb32)
             th = thumbnail(lum, sat, cfg.flare_thumb)
-            tau = lit_threshold(th, job.cutoff)
+            tau = lit_threshold(th, job.cutoff, cfg.lit_ratio, cfg.lit_floor)
             acc.add(light, rgb32, sat, tau, lum)
             thumbs.append(th.lum)
             sthumbs.append(th.saturated.astype(np.float16))
@@ -234,6 +230,20 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
     return ChunkRecord(
         job.group, job.camera, job.index, processed, reused, tuple(problems), time.perf_counter() - start
     )
+
+
+def _check_finite(rgb: np.ndarray, raw: str) -> None:
+    """Refuse a frame with NaN/Inf samples or processed values beyond the half range (cheap SIMD check;
+    an area mean is non-finite when any of its sources is)."""
+    import cv2
+
+    ok, _ = cv2.checkRange(rgb, True, -65504.0, 65504.0)
+    if not ok:
+        bad = int(np.count_nonzero(~np.isfinite(rgb)))
+        big = int(np.count_nonzero(np.abs(np.nan_to_num(rgb)) > 65504.0))
+        raise LightstageError(
+            f"{raw}: non-finite pixels ({bad} NaN/Inf processed samples, {big} beyond the half range)"
+        )
 
 
 def _thumb_shape(h: int, w: int, factor: int) -> tuple[int, int]:
