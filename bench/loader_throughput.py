@@ -13,8 +13,17 @@ import time
 from pathlib import Path
 
 
+def _cpu_seconds() -> float:
+    """CPU seconds of this process plus its finished (reaped) children: DataLoader workers."""
+    import resource
+
+    me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
+
+
 def throughput(shards: Path, batch_size: int, workers: int, verify: str, seconds: float = 8.0) -> dict:
-    """Rays per second over whole epochs (at least `seconds` of work), page cache warm."""
+    """Rays per wall second and per CPU second (main + workers: the per-core rate, robust to a busy machine)
+    over whole epochs (at least `seconds` of work), page cache warm."""
     import torch
 
     from lightstage.dataset.loader import RayLoader, RayShardDataset
@@ -23,20 +32,22 @@ def throughput(shards: Path, batch_size: int, workers: int, verify: str, seconds
     ds = RayShardDataset(shards, batch_size=batch_size, verify=verify)
     loader = RayLoader(ds, num_workers=workers)
     rays = 0
+    c0 = _cpu_seconds()
     t0 = time.perf_counter()
     while time.perf_counter() - t0 < seconds:
         for b in loader:
             rays += b["origins"].shape[0]
     dt = time.perf_counter() - t0
-    cores = max(1, workers)
+    cpu = _cpu_seconds() - c0
     return {
         "batch_size": batch_size,
         "workers": workers,
         "verify": verify,
         "rays": rays,
         "seconds": round(dt, 2),
+        "cpu_seconds": round(cpu, 2),
         "rays_per_s": round(rays / dt),
-        "rays_per_s_per_core": round(rays / dt / cores),
+        "rays_per_cpu_s": round(rays / cpu),
     }
 
 
