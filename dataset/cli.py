@@ -34,6 +34,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     s.add_argument("--workers", type=int, default=None, help="local processes when no dask client is used")
     s.add_argument("--seed", type=int, default=None)
+    s.add_argument("--force", action="store_true", help="rewrite the shards even if they are up to date")
     s.add_argument(
         "--verify", action="store_true", help="only verify existing shards against their checksums"
     )

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -18,7 +19,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from lightstage.atomic import write_json_atomic
+from lightstage.atomic import write_json_atomic, write_text_atomic
 from lightstage.capture.layout import FrameId, ViewId
 from lightstage.capture.stage import Stage
 from lightstage.errors import LightstageError
@@ -159,7 +160,12 @@ class Split:
         }
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        write_json_atomic(path, self.to_dict())
+        """Indented JSON with every list of scalars on one line (compact, still diffable)."""
+        text = json.dumps(self.to_dict(), indent=2)
+        text = re.sub(
+            r"\[\s*([^\[\]{}]*?)\s*\]", lambda m: "[" + re.sub(r",\s+", ", ", m.group(1)) + "]", text
+        )
+        write_text_atomic(path, text + "\n")
 
 
 def load_split(path: str | os.PathLike[str]) -> Split:
