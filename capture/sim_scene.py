@@ -17,7 +17,6 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from lightstage.cameras import pixel_rays
 from lightstage.errors import LightstageError
 
 # Pixels per ray-casting band (keeps memory bounded at any resolution).
@@ -240,8 +239,14 @@ class SolidTexture:
         weight, norm = 1.0, 0.0
         for k, cell in enumerate(cell_sizes):
             rot, off = self.frames[fieldno][k]
-            coords = (p @ rot.T) / cell + off
-            v = ndimage.map_coordinates(self.grids[fieldno], coords.T, order=1, mode="grid-wrap")
+            # explicit products: BLAS matmul on (N, 3) arrays is slow (and thread-hungry) here
+            coords = np.stack(
+                [
+                    (p[:, 0] * rot[i, 0] + p[:, 1] * rot[i, 1] + p[:, 2] * rot[i, 2]) / cell + off[i]
+                    for i in range(3)
+                ]
+            )
+            v = ndimage.map_coordinates(self.grids[fieldno], coords, order=1, mode="grid-wrap")
             total += weight * v
             norm += weight
             weight *= gain
@@ -330,6 +335,22 @@ def first_hit(scene: SimScene, o: tuple, d: tuple) -> tuple[np.ndarray, np.ndarr
     return t, kind, prim
 
 
+def _pixel_rays(
+    u: np.ndarray, v: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """World rays (origins, unit directions) through pixel coordinates; same maths as
+    `lightstage.cameras.pixel_rays` with explicit products (no BLAS on (N, 3) arrays)."""
+    Ki = np.linalg.inv(np.asarray(K, np.float64))
+    x = Ki[0, 0] * u + Ki[0, 1] * v + Ki[0, 2]
+    y = Ki[1, 0] * u + Ki[1, 1] * v + Ki[1, 2]
+    z = Ki[2, 0] * u + Ki[2, 1] * v + Ki[2, 2]
+    R = np.asarray(R, np.float64)
+    d = np.stack([R[0, i] * x + R[1, i] * y + R[2, i] * z for i in range(3)], axis=-1)
+    d /= np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
+    centre = -R.T @ np.asarray(t, np.float64)
+    return np.broadcast_to(centre, d.shape).copy(), d
+
+
 def _scene_roi(
     scene: SimScene, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int
 ) -> tuple[int, int, int, int]:
@@ -369,8 +390,7 @@ def cast_view(
     for r0 in range(row0, row1, rows_per_band):
         r1 = min(row1, r0 + rows_per_band)
         jj, ii = np.meshgrid(np.arange(r0, r1), np.arange(c0, c1), indexing="ij")
-        uv = np.stack([ii.ravel() + 0.5, jj.ravel() + 0.5], axis=-1)
-        origins, dirs = pixel_rays(uv, K, R, t)
+        origins, dirs = _pixel_rays(ii.ravel() + 0.5, jj.ravel() + 0.5, K, R, t)
         o = (origins[:, 0], origins[:, 1], origins[:, 2])
         d = (dirs[:, 0], dirs[:, 1], dirs[:, 2])
         th, kind, prim = first_hit(scene, o, d)
