@@ -244,3 +244,19 @@ def test_cli_and_changed_config_rewrites(tmp_path, capsys):
     m1 = load_manifest(work / "shards")
     assert not {r["sha256"] for r in m1["shards"]} & {r["sha256"] for r in m0["shards"]}
     assert verify_shards(work / "shards") == len(m1["shards"])
+
+
+def test_view_rays_undistort_distorted_cameras():
+    """A ray of a distorted camera re-projects (with the distortion) onto its pixel centre."""
+    import cv2
+
+    from lightstage.cameras import look_at
+
+    K = np.array([[120.0, 0, 64], [0, 120.0, 40], [0, 0, 1]])
+    R, t = look_at(np.array([0.0, -1.5, 0.3]), np.zeros(3))
+    dist = np.array([-0.12, 0.03, 0.001, -0.002, 0.0])
+    pix = np.array([[0, 0], [10, 70], [127, 79], [64, 40], [-20, 5]])
+    o, d = view_rays(K, R, t, dist, pix)
+    pts = o.astype(np.float64) + 2.0 * d.astype(np.float64)
+    uv, _ = cv2.projectPoints(pts, cv2.Rodrigues(R)[0], t, K, dist)
+    np.testing.assert_allclose(uv.reshape(-1, 2), pix + 0.5, atol=2e-3)
