@@ -106,3 +106,33 @@ def test_run_eval_and_trained_model_interface(tmp_path):
     assert dens.shape == (2,) and dens[1] == 0
     img = tm.image_from_camera(src.camera(10.0, 5.0, size=8), np.array([0.0, 0.0, 1.0]))
     assert img.shape == (8, 8, 3) and img.dtype == np.float32
+
+
+@pytest.mark.slow
+def test_cli_train_and_eval_on_dataset_shards(tmp_path):
+    """The real wiring: dataset fixture -> split -> shards -> `lightstage train` -> `lightstage eval`."""
+    import yaml
+
+    from lightstage.dataset.fixtures import make_synthetic_work
+    from lightstage.dataset.shards import ShardConfig, run_shard
+    from lightstage.dataset.split import SplitConfig, run_split
+    from lightstage.pipelines.cli import main
+
+    work, _ = make_synthetic_work(tmp_path)
+    run_split(work, SplitConfig("paper"), progress=False)
+    run_shard(work, ShardConfig(rays_per_image=64, rays_per_shard=256, workers=1), progress=False)
+    cfg = micro_config(steps=3).to_dict()
+    cfg["optim"]["batch_rays"] = 64
+    cfg["eval"].update(every=2, images=1, max_images=2)
+    (tmp_path / "micro.yaml").write_text(yaml.safe_dump(cfg))
+    args = [str(work.root), "--config", str(tmp_path / "micro.yaml"), "--device", "cpu", "--no-progress"]
+    assert main(["train", *args]) == 0
+    report = json.loads(work.report("train").read_text())
+    assert report["steps"] == 3 and np.isfinite(report["final_loss"])
+    assert list((work.train_dir / "previews").glob("*.png"))
+    assert main(["train", *args, "--steps", "5"]) == 0  # resumes from step 3
+    assert json.loads(work.report("train").read_text())["steps"] == 5
+    assert main(["eval", str(work.root), "--device", "cpu", "--no-progress"]) == 0
+    ev = json.loads(work.report("eval").read_text())
+    assert ev["count"] == 2 and ev["lpips"] == "unavailable"
+    assert main(["train", str(work.root), "--config", "nonexistent.yaml"]) == 2

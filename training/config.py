@@ -30,6 +30,7 @@ class MLPConfig:
     width: int = 256
     skip: int = 4
     head_width: int = 128
+    head_depth: int = 1  # hidden layers of the h head (NeRF: 1)
     pos_freqs: int = 10
     dir_freqs: int = 4
     light_freqs: int = 4

@@ -24,7 +24,10 @@ class MLPField(nn.Module):
         self.sigma = nn.Linear(m.width, 1)
         self.feature = nn.Linear(m.width, m.width)
         head_in = m.width + encoded_dim(m.dir_freqs) + encoded_dim(m.light_freqs)
-        self.head = nn.Sequential(nn.Linear(head_in, m.head_width), nn.ReLU(), nn.Linear(m.head_width, 3))
+        layers: list[nn.Module] = []
+        for i in range(max(1, m.head_depth)):
+            layers += [nn.Linear(head_in if i == 0 else m.head_width, m.head_width), nn.ReLU()]
+        self.head = nn.Sequential(*layers, nn.Linear(m.head_width, 3))
         nn.init.constant_(self.head[-1].bias, cfg.h_bias_init)
 
     def _trunk(self, x: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,106 @@
+"""Training throughput (rays per second, forward + backward + Adam step) of the `paper` and `fast` configs on
+the synthetic sphere problem, on CPU and, when present, on CUDA.
+
+For `fast` the occupancy grid is set from the analytic sphere (what training converges to) so empty-space
+skipping is measured as it behaves after warm-up; `--no-occupancy-prefill` measures the all-occupied start.
+
+    python bench/train_throughput.py [--configs paper fast] [--batch 4096] [--steps 5] [--devices cpu cuda]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import torch
+
+from lightstage.training.config import load_config
+from lightstage.training.losses import total_loss
+from lightstage.training.model import RelightModel
+from lightstage.training.synthetic import SyntheticSphere
+from lightstage.training.trainer import autocast_context
+
+
+def prefill_occupancy(model: RelightModel, src: SyntheticSphere) -> None:
+    """Mark the cells inside the synthetic sphere (plus one cell) as occupied."""
+    occ = model.occupancy
+    r = occ.resolution
+    centres = (torch.stack(torch.meshgrid(*(torch.arange(r),) * 3, indexing="ij"), -1) + 0.5) / r * 2 - 1
+    inside = centres.norm(dim=-1) <= src.radius / src.scale + 2.0 / r
+    occ.grid.copy_(torch.where(inside, 1e4, 0.0).to(occ.grid.device))
+    occ.ready.fill_(True)
+
+
+def measure(name: str, device: str, batch: int, steps: int, warmup: int, prefill: bool) -> dict:
+    cfg = load_config(name)
+    src = SyntheticSphere(batch_size=batch)
+    dev = torch.device(device)
+    model = RelightModel(cfg.model, src.centre, src.scale).to(dev)
+    if model.occupancy is not None and prefill:
+        prefill_occupancy(model, src)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-4)
+    batches = [{k: v.to(dev) for k, v in src.batch(i).items()} for i in range(4)]
+
+    def step(i: int) -> None:
+        b = batches[i % len(batches)]
+        with autocast_context(dev, cfg.optim.precision):
+            out = model(b["origins"], b["directions"], b["light_directions"], randomized=True)
+        loss, _ = total_loss(out, b, cfg.loss)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+
+    for i in range(warmup):
+        step(i)
+    if dev.type == "cuda":
+        torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    for i in range(steps):
+        step(i)
+    if dev.type == "cuda":
+        torch.cuda.synchronize()
+    dt = time.perf_counter() - t0
+    return {
+        "config": name,
+        "device": device,
+        "batch": batch,
+        "steps": steps,
+        "seconds": dt,
+        "rays_per_s": batch * steps / dt,
+        "precision": cfg.optim.precision if dev.type == "cuda" else "fp32",
+        "occupancy_prefilled": bool(model.occupancy is not None and prefill),
+        "threads": torch.get_num_threads(),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--configs", nargs="+", default=["paper", "fast"])
+    ap.add_argument("--devices", nargs="+", default=["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"])
+    ap.add_argument(
+        "--batch", type=int, default=None, help="rays per step (default 4096 on CUDA, 1024 on CPU)"
+    )
+    ap.add_argument("--steps", type=int, default=None, help="timed steps (default 20 on CUDA, 3 on CPU)")
+    ap.add_argument("--warmup", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--no-occupancy-prefill", action="store_true")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    results = []
+    for device in args.devices:
+        gpu = device == "cuda"
+        batch = args.batch or (4096 if gpu else 1024)
+        steps = args.steps or (20 if gpu else 3)
+        for name in args.configs:
+            r = measure(name, device, batch, steps, args.warmup, not args.no_occupancy_prefill)
+            print(json.dumps(r), flush=True)
+            results.append(r)
+    by = {(r["device"], r["config"]): r["rays_per_s"] for r in results}
+    for device in args.devices:
+        if (device, "paper") in by and (device, "fast") in by:
+            print(f"{device}: fast / paper = {by[(device, 'fast')] / by[(device, 'paper')]:.1f}x")
+
+
+if __name__ == "__main__":
+    main()
