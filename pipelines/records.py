@@ -130,18 +130,14 @@ def summarise_report(report: dict[str, Any] | None, summary: dict[str, Any]) -> 
             if isinstance(src.get(key), dict):
                 out[key] = src[key]
                 break
-    # Stages name their per-item problems differently; the first key found counts.
-    for key, aliases in (("warnings", ("warnings",)), ("errors", ("errors", "problems", "rejected_frames"))):
-        for src in sources:
-            alias = next((a for a in aliases if a in src), None)
-            if alias is not None:
-                n, msgs = _list_of_messages(src[alias])
-                out[key] = n
-                out[f"{key}_first"] = msgs
-                break
-        else:
-            out[key] = 0
-            out[f"{key}_first"] = []
+    # Stages name per-item problems differently ("errors", "problems"; a count or a list): take the largest
+    # count found, with the messages of a list that has it.
+    for key, aliases in (("warnings", ("warnings",)), ("errors", ("errors", "problems"))):
+        found = [_list_of_messages(src[a]) for src in sources for a in aliases if a in src]
+        n = max((c for c, _ in found), default=0)
+        msgs = next((m for c, m in found if c == n and m), [])
+        out[key] = n
+        out[f"{key}_first"] = msgs
     return out
 
 
