@@ -316,11 +316,18 @@ class ShardTask:
     seed: int
 
 
-def shard_positions(k_lo: int, k_hi: int, s: int, S: int, N: int, T: int) -> np.ndarray:
-    """Global pool positions floor(k N / T) of the kept rays k in [k_lo, k_hi) that go to shard s (k = s mod S)."""
-    first = k_lo + ((s - k_lo) % S)
-    k = np.arange(first, k_hi, S, dtype=np.int64)
-    return (k * N) // T
+def shard_range(k_lo: int, k_hi: int, s: int, S: int) -> tuple[int, int]:
+    """(start, count) of shard s's piece of a chunk zone block whose kept rays have global indices [k_lo, k_hi).
+
+    Shard s owns the kept indices k = s (mod S) (so every shard gets exactly T / S rays of the zone); inside the
+    chunk, whose block is already shuffled, those rays are taken as one contiguous piece: the pieces of shards
+    0..S-1 tile the block's first k_hi - k_lo rays in order (one sequential read per chunk, each ray read once).
+    """
+    shards = np.arange(S)
+    below = np.maximum(0, (k_lo - shards + S - 1) // S)  # kept k < k_lo with k = shard (mod S)
+    upto = np.maximum(0, (k_hi - shards + S - 1) // S)
+    counts = upto - below
+    return int(counts[:s].sum()), int(counts[s])
 
 
 def write_shard(task: ShardTask) -> dict[str, Any]:
@@ -341,11 +348,12 @@ def write_shard(task: ShardTask) -> dict[str, Any]:
             N, T = task.totals[zi], task.kept[zi]
             a, n = int(offsets[zi]), counts[zi]
             if n and T:
-                k_lo = -(-a * T // N)
+                k_lo = -(-a * T // N)  # kept rays: floor(k N / T) spreads the dropped surplus over all chunks
                 k_hi = -(-(a + n) * T // N)
-                pos = shard_positions(k_lo, k_hi, task.index, task.num_shards, N, T) - a
-                if pos.size:
-                    gathered[zi].append(np.asarray(data[starts[zi] + pos]))
+                start, count = shard_range(k_lo, k_hi, task.index, task.num_shards)
+                if count:
+                    lo = int(starts[zi]) + start
+                    gathered[zi].append(np.array(data[lo : lo + count]))
             offsets[zi] += n
         del data
     for zi in range(len(ZONES)):
