@@ -235,6 +235,20 @@ def write_bounds_picture(path: Path, work: WorkDir, calib: Any, views: list[View
         write_image(path, np.ascontiguousarray(np.concatenate(tiles, axis=1)))
 
 
+def _inputs_key(work: WorkDir, views: list[ViewId], config: BoundsConfig) -> str:
+    """Fingerprint of what the bounds depend on: calibration, the views, their masks (size, mtime), config."""
+    import hashlib
+
+    h = hashlib.sha256(work.calibration.read_bytes())
+    cfg = {k: v for k, v in asdict(config).items() if k != "force"}
+    h.update(json.dumps(cfg, sort_keys=True).encode())
+    for v in views:
+        p = work.mask(v)
+        st = p.stat() if p.is_file() else None
+        h.update(f"{v}:{st.st_size if st else -1}:{st.st_mtime_ns if st else -1};".encode())
+    return h.hexdigest()[:16]
+
+
 def _training_views(work: WorkDir, calib_views: list[ViewId]) -> list[ViewId]:
     if work.split.is_file():
         from lightstage.dataset.split import load_split
@@ -253,20 +267,22 @@ def run_bounds(
     from lightstage.calibration.record import Calibration
 
     t0 = time.perf_counter()
-    if work.bounds.is_file() and not config.force:
-        b = load_bounds(work.bounds)
-        d = json.loads(work.bounds.read_text())
-        return {
-            "stage": "bounds",
-            "skipped": True,
-            "centre": b.centre.tolist(),
-            "scale": b.scale,
-            "views": d.get("views", 0),
-            "occupied_voxels": d.get("occupied_voxels", 0),
-            "output": str(work.bounds),
-        }
     calib = Calibration.load(work.calibration)
     names = _training_views(work, sorted(calib.views))
+    key = _inputs_key(work, names, config)
+    if work.bounds.is_file() and not config.force:
+        d = json.loads(work.bounds.read_text())
+        if d.get("inputs_key") == key:
+            b = load_bounds(work.bounds)
+            return {
+                "stage": "bounds",
+                "skipped": True,
+                "centre": b.centre.tolist(),
+                "scale": b.scale,
+                "views": d.get("views", 0),
+                "occupied_voxels": d.get("occupied_voxels", 0),
+                "output": str(work.bounds),
+            }
     views = []
     missing = []
     for v in names:
@@ -299,6 +315,7 @@ def run_bounds(
         "margin": config.margin,
         "carving": info,
         "config": asdict(config),
+        "inputs_key": key,
     }
     write_json_atomic(work.bounds, record)
     picture = work.root / "bounds.png"

@@ -165,7 +165,8 @@ def test_bounds_contain_the_object_and_are_tight(tmp_path):
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     assert np.abs(b.normalize(corners)).max() <= 1.0 / 1.1 + 1e-9
     assert s["views"] == 18
-    assert run_bounds(work, BoundsConfig(), progress=False)["skipped"]
+    assert run_bounds(work, BoundsConfig(resolution=48), progress=False)["skipped"]
+    assert not run_bounds(work, BoundsConfig(resolution=40), progress=False)["skipped"]
 
 
 def _sharded_copy(root, config, client=None):
@@ -260,3 +261,17 @@ def test_view_rays_undistort_distorted_cameras():
     pts = o.astype(np.float64) + 2.0 * d.astype(np.float64)
     uv, _ = cv2.projectPoints(pts, cv2.Rodrigues(R)[0], t, K, dist)
     np.testing.assert_allclose(uv.reshape(-1, 2), pix + 0.5, atol=2e-3)
+
+
+def test_bounds_recomputed_when_masks_change(tmp_path):
+    import cv2
+
+    work, _ = make_synthetic_work(tmp_path, num_cameras=4, num_lights=1, num_groups=2)
+    cfg = BoundsConfig(resolution=32)
+    first = run_bounds(work, cfg, progress=False)
+    assert run_bounds(work, cfg, progress=False)["skipped"]
+    v = ViewId("000", "cam00")
+    m = cv2.imread(str(work.mask(v)), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(work.mask(v)), np.zeros_like(m) + 255 * (np.arange(m.shape[1]) < m.shape[1] // 2))
+    again = run_bounds(work, cfg, progress=False)
+    assert not again["skipped"] and again["centre"] != first["centre"]
