@@ -506,8 +506,15 @@ def run_shard(
     manifest_path = root / MANIFEST
     split = load_split(work.split)
     calib = Calibration.load(work.calibration)
-    if not work.bounds.is_file():
-        run_bounds(work, BoundsConfig(), client=client, progress=progress)
+    # bounds: computed when absent, recomputed (with the config they were made with) when their inputs changed
+    bounds_cfg = BoundsConfig()
+    if work.bounds.is_file():
+        try:
+            stored = json.loads(work.bounds.read_text()).get("config", {})
+            bounds_cfg = BoundsConfig.from_dict({k: v for k, v in stored.items() if k != "force"})
+        except (ValueError, LightstageError):
+            pass
+    run_bounds(work, bounds_cfg, client=client, progress=progress)
     bounds = load_bounds(work.bounds)
     inputs_hash = hashlib.sha256(
         b"".join(p.read_bytes() for p in (work.split, work.calibration, work.bounds))
