@@ -516,8 +516,10 @@ def run_shard(
             pass
     run_bounds(work, bounds_cfg, client=client, progress=progress)
     bounds = load_bounds(work.bounds)
+    # what the shards depend on; the preprocess report changes whenever preprocess rewrote frames or masks
+    depends = [work.split, work.calibration, work.bounds, work.report("preprocess")]
     inputs_hash = hashlib.sha256(
-        b"".join(p.read_bytes() for p in (work.split, work.calibration, work.bounds))
+        b"".join(p.read_bytes() for p in depends if p.is_file())
         + json.dumps({k: v for k, v in asdict(config).items() if k not in ("workers", "force")}).encode()
     ).hexdigest()[:16]
     if manifest_path.is_file() and not config.force:
