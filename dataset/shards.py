@@ -125,7 +125,6 @@ def border_pixels(index: np.ndarray, width: int, height: int, pad: tuple[int, in
     px, py = pad
     W = width + 2 * px
     top = py * W  # rows -py..-1 (all columns), then rows H..H+py-1, then side columns of the image rows
-    side = 2 * px * height
     out = np.empty((len(index), 2), np.int64)
     a = index < top
     out[a, 0] = index[a] % W - px
@@ -139,7 +138,6 @@ def border_pixels(index: np.ndarray, width: int, height: int, pad: tuple[int, in
     row, col = k // (2 * px), k % (2 * px)
     out[c, 0] = np.where(col < px, col - px, width + col - px)
     out[c, 1] = row
-    assert side >= 0
     return out
 
 
@@ -251,6 +249,9 @@ def write_view_chunk(task: ViewTask) -> dict[str, Any]:
         for z in ZONES:
             if z == ZONE_BACKGROUND:
                 n_pool = bg_img.size + n_ring
+                if n_pool == 0:
+                    stats["missing"][ZONE_NAMES[z]] += q[z]
+                    continue
                 sel = rng.choice(n_pool, size=q[z], replace=n_pool < q[z])
                 in_img = sel < bg_img.size
                 pix = np.empty((q[z], 2), np.int64)

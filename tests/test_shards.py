@@ -275,3 +275,25 @@ def test_bounds_recomputed_when_masks_change(tmp_path):
     cv2.imwrite(str(work.mask(v)), np.zeros_like(m) + 255 * (np.arange(m.shape[1]) < m.shape[1] // 2))
     again = run_bounds(work, cfg, progress=False)
     assert not again["skipped"] and again["centre"] != first["centre"]
+
+
+@pytest.mark.parametrize("size", [(48, 32), (32, 48), (40, 40)])
+@pytest.mark.parametrize("border", [0, 3])
+def test_border_ring_enumerates_every_outside_pixel_once(size, border):
+    from lightstage.dataset.shards import border_geometry, border_pixels, ring_size
+
+    w, h = size
+    pad = border_geometry(w, h, ShardConfig(border_px=border))
+    n = ring_size(w, h, pad)
+    if w == h and border == 0:
+        assert n == 0  # a square image without margin has no ring
+        return
+    pix = border_pixels(np.arange(n), w, h, pad)
+    assert len({tuple(p) for p in pix.tolist()}) == n
+    inside = (pix[:, 0] >= 0) & (pix[:, 0] < w) & (pix[:, 1] >= 0) & (pix[:, 1] < h)
+    assert not inside.any()
+    assert pix[:, 0].min() >= -pad[0] and pix[:, 0].max() < w + pad[0]
+    assert pix[:, 1].min() >= -pad[1] and pix[:, 1].max() < h + pad[1]
+    assert n == (w + 2 * pad[0]) * (h + 2 * pad[1]) - w * h
+    if border == 0 and w != h:
+        assert (w + 2 * pad[0]) - (h + 2 * pad[1]) in (0, 1, -1)  # padded to (about) a square
