@@ -189,7 +189,7 @@ def test_dask_client_writes_identical_shards(sharded, tmp_path):
 
     work, _, _ = sharded
     ref = load_manifest(work.shards_dir)
-    with dask_client(ClusterSettings(workers=2, dashboard=""), verbose=False) as client:
+    with dask_client(ClusterSettings(workers=2, dashboard=":0"), verbose=False) as client:
         m = _sharded_copy(tmp_path, CFG, client=client)
     assert [s["sha256"] for s in m["shards"]] == [s["sha256"] for s in ref["shards"]]
 
