@@ -165,7 +165,10 @@ def _sfm_calibration(
         seed=config.seed,
     )
     sfm_dir = work.calibration_dir / "sfm"
-    result = run_sfm(views, proc_intr, stage.camera_ids, sfm_dir, options, log=log)
+    initial = {
+        v: (stage.view_camera(v.group, v.camera).R, stage.view_camera(v.group, v.camera).t) for v in views
+    }
+    result = run_sfm(views, proc_intr, stage.camera_ids, sfm_dir, options, log=log, initial_poses=initial)
     stats = dict(result.stats)
     n_needed = int(np.ceil(config.min_registered_fraction * len(views)))
     if len(result.registered) < n_needed:

@@ -39,6 +39,19 @@ class SfmOptions:
     seed: int = 0
     final_ba_iterations: int = 200
     use_rig: bool = True
+    min_points_per_view: int = 15
+    init: str = (
+        "nominal"  # "nominal": triangulate from the nominal rig, then refine; "incremental": COLMAP mapper
+    )
+    refine_rounds: int = 4
+    initial_max_reproj_px: float = 10.0  # triangulation/filter threshold of the first round (nominal poses)
+    final_max_reproj_px: float = 2.0  # ... of the last round
+    init_min_num_inliers: int = 30
+    abs_pose_min_num_inliers: int = 15
+    init_min_tri_angle_deg: float = 8.0
+    domain_size_pooling: bool = False
+    min_num_inliers: int = 12  # two-view verification
+    verbose: bool = False
 
 
 @dataclass
@@ -96,11 +109,14 @@ def run_sfm(
     work_dir: Path,
     options: SfmOptions = SfmOptions(),
     log=print,
+    initial_poses: dict[ViewId, tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> SfmResult:
     """Run feature extraction, exhaustive matching and rig-aware incremental mapping.
 
     `views`: view -> (well-lit PNG, mask PNG). `intrinsics`: camera id -> (K, dist, width, height) at the
-    images' resolution.
+    images' resolution. `initial_poses` (view -> world-to-camera (R, t), e.g. the nominal stage): when given
+    and `options.init == "nominal"`, mapping starts from them (rig-structured triangulation + bundle adjustment
+    rounds) instead of COLMAP's incremental registration, which needs more matches than small objects give.
     Raises LightstageError naming the views that could not be registered.
     """
     import time
@@ -131,6 +147,7 @@ def run_sfm(
     extraction.sift.max_num_features = options.max_features
     extraction.sift.first_octave = options.first_octave
     extraction.sift.peak_threshold = options.peak_threshold
+    extraction.sift.domain_size_pooling = options.domain_size_pooling
     pycolmap.extract_features(
         db_path,
         image_dir,
@@ -175,6 +192,7 @@ def run_sfm(
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.max_error = options.ransac_max_error_px
     verification.detect_watermark = False
+    verification.min_num_inliers = options.min_num_inliers
     pycolmap.match_exhaustive(
         db_path, matching_options=matching, verification_options=verification, device=pycolmap.Device.cpu
     )
@@ -191,10 +209,108 @@ def run_sfm(
     mapping.mapper.abs_pose_refine_focal_length = False
     mapping.mapper.abs_pose_refine_extra_params = False
     mapping.multiple_models = False
+    mapping.mapper.init_min_num_inliers = options.init_min_num_inliers
+    mapping.mapper.abs_pose_min_num_inliers = options.abs_pose_min_num_inliers
+    mapping.mapper.init_min_tri_angle = options.init_min_tri_angle_deg
     sparse_dir = work_dir / "sparse"
     sparse_dir.mkdir()
+    if options.init == "nominal" and initial_poses is not None:
+        rec = _refine_from_initial(
+            db_path, image_dir, sparse_dir, views, initial_poses, cams_present, camera_of, mapping, options
+        )
+        recs = {0: rec}
+        t_map = time.perf_counter() - t0 - t_extract - t_match
+        t_ba = 0.0
+    else:
+        rec, recs, t_map, t_ba = _incremental(
+            db_path, image_dir, sparse_dir, views, cams_present, mapping, options, t0 + t_extract + t_match
+        )
+
+    registered, observed, sensor_from_rig, rig_from_world = [], [], {}, {}
+    for image in rec.images.values():
+        # A view is *observed* when enough triangulated points constrain it (with the nominal initialisation
+        # every image has a pose from the start, so has_pose alone means nothing).
+        if image.has_pose and image.num_points3D >= options.min_points_per_view:
+            observed.append(by_name[image.name])
+    # Under the rig model a view's pose is its camera's rig pose composed with its group's frame pose: it is
+    # registered when its camera is observed in some group and its group is observed by >= 3 cameras.
+    obs_cams = {v.camera for v in observed}
+    obs_groups = {g for g in {v.group for v in observed} if sum(v.group == g for v in observed) >= 3}
+    for image in rec.images.values():
+        v = by_name[image.name]
+        if image.has_pose and (
+            v in set(observed) or (options.use_rig and v.camera in obs_cams and v.group in obs_groups)
+        ):
+            registered.append(v)
+    reg_set = set(registered)
+    unregistered = sorted(v for v in views if v not in reg_set)
+    for rig in rec.rigs.values():
+        for sensor_id in rig.sensor_ids():
+            cam_id = sensor_id.id
+            cid = next((c for c, i in camera_of.items() if i == cam_id), None)
+            if cid is None:
+                continue
+            if rig.is_ref_sensor(sensor_id):
+                sensor_from_rig[cid] = (np.eye(3), np.zeros(3))
+            else:
+                T = rig.sensor_from_rig(sensor_id)
+                sensor_from_rig[cid] = (T.rotation.matrix(), np.asarray(T.translation))
+    groups_of_frame: dict[int, set[str]] = {}
+    for image in rec.images.values():
+        groups_of_frame.setdefault(image.frame_id, set()).add(by_name[image.name].group)
+    for frame_id, frame in rec.frames.items():
+        if not frame.has_pose:
+            continue
+        groups = groups_of_frame.get(frame_id, set())
+        if len(groups) != 1:
+            raise LightstageError(f"SfM: a COLMAP frame holds groups {sorted(groups)} (image naming broke)")
+        T = frame.rig_from_world
+        rig_from_world[groups.pop()] = (T.rotation.matrix(), np.asarray(T.translation))
+
+    errors = _reprojection_errors(rec)
+    track_lengths = np.array([p.track.length() for p in rec.points3D.values()]) if rec.num_points3D() else []
+    stats = {
+        "num_views": len(views),
+        "num_registered": len(registered),
+        "num_observed": len(observed),
+        "min_points_per_view": options.min_points_per_view,
+        "unregistered": [str(v) for v in unregistered],
+        "num_points3D": int(rec.num_points3D()),
+        "num_observations": int(rec.compute_num_observations()),
+        "mean_track_length": float(np.mean(track_lengths)) if len(track_lengths) else 0.0,
+        "reprojection_error_px": {
+            "mean": float(errors.mean()) if errors.size else None,
+            "median": float(np.median(errors)) if errors.size else None,
+            "p95": float(np.percentile(errors, 95)) if errors.size else None,
+        },
+        "keypoints_per_image": {
+            "mean": float(np.mean(list(num_keypoints.values()))),
+            "min": int(min(num_keypoints.values())),
+        },
+        "num_reconstructions": len(recs),
+        "seconds": {
+            "extract": round(t_extract, 2),
+            "match": round(t_match, 2),
+            "map": round(t_map, 2),
+            "final_ba": round(t_ba, 2),
+        },
+    }
+    log(
+        f"SfM: {len(registered)}/{len(views)} views registered, {rec.num_points3D()} points, "
+        f"mean reprojection error {errors.mean() if errors.size else float('nan'):.3f} px, "
+        f"mean track length {stats['mean_track_length']:.2f}"
+    )
+    return SfmResult(sensor_from_rig, rig_from_world, sorted(registered), unregistered, stats, rec)
+
+
+def _incremental(db_path, image_dir, sparse_dir, views, cams_present, mapping, options, t_start):
+    """COLMAP's incremental mapper without rig constraints, then the rig applied and bundle-adjusted."""
+    import time
+
+    import pycolmap
+
     recs = pycolmap.incremental_mapping(db_path, image_dir, sparse_dir, options=mapping)
-    t_map = time.perf_counter() - t0 - t_extract - t_match
+    t_map = time.perf_counter() - t_start
     if not recs:
         raise LightstageError(
             f"SfM failed: no reconstruction from {len(views)} views (too few matches on the foreground?); "
@@ -231,74 +347,101 @@ def run_sfm(
         ba.refine_principal_point = False
         ba.refine_extra_params = False
         ba.refine_sensor_from_rig = options.refine_rig
-        ba.print_summary = False
+        ba.print_summary = options.verbose
         ba.ceres.solver_options.max_num_iterations = options.final_ba_iterations
-        ba.ceres.solver_options.function_tolerance = 1e-10
+        ba.ceres.solver_options.function_tolerance = 1e-12
+        ba.ceres.solver_options.gradient_tolerance = 1e-12
+        ba.ceres.solver_options.parameter_tolerance = 1e-12
         ba.ceres.solver_options.num_threads = options.num_threads
         pycolmap.bundle_adjustment(rec, ba)
-    t_ba = time.perf_counter() - t0 - t_extract - t_match - t_map
+    t_ba = time.perf_counter() - t_start - t_map
 
-    registered, sensor_from_rig, rig_from_world = [], {}, {}
-    for image in rec.images.values():
-        if image.has_pose:
-            registered.append(by_name[image.name])
-    reg_set = set(registered)
-    unregistered = sorted(v for v in views if v not in reg_set)
-    for rig in rec.rigs.values():
-        for sensor_id in rig.sensor_ids():
-            cam_id = sensor_id.id
-            cid = next((c for c, i in camera_of.items() if i == cam_id), None)
-            if cid is None:
-                continue
-            if rig.is_ref_sensor(sensor_id):
-                sensor_from_rig[cid] = (np.eye(3), np.zeros(3))
-            else:
-                T = rig.sensor_from_rig(sensor_id)
-                sensor_from_rig[cid] = (T.rotation.matrix(), np.asarray(T.translation))
-    groups_of_frame: dict[int, set[str]] = {}
-    for image in rec.images.values():
-        groups_of_frame.setdefault(image.frame_id, set()).add(by_name[image.name].group)
-    for frame_id, frame in rec.frames.items():
-        if not frame.has_pose:
-            continue
-        groups = groups_of_frame.get(frame_id, set())
-        if len(groups) != 1:
-            raise LightstageError(f"SfM: a COLMAP frame holds groups {sorted(groups)} (image naming broke)")
-        T = frame.rig_from_world
-        rig_from_world[groups.pop()] = (T.rotation.matrix(), np.asarray(T.translation))
+    return rec, recs, t_map, t_ba
 
-    errors = _reprojection_errors(rec)
-    track_lengths = np.array([p.track.length() for p in rec.points3D.values()]) if rec.num_points3D() else []
-    stats = {
-        "num_views": len(views),
-        "num_registered": len(registered),
-        "unregistered": [str(v) for v in unregistered],
-        "num_points3D": int(rec.num_points3D()),
-        "num_observations": int(rec.compute_num_observations()),
-        "mean_track_length": float(np.mean(track_lengths)) if len(track_lengths) else 0.0,
-        "reprojection_error_px": {
-            "mean": float(errors.mean()) if errors.size else None,
-            "median": float(np.median(errors)) if errors.size else None,
-            "p95": float(np.percentile(errors, 95)) if errors.size else None,
-        },
-        "keypoints_per_image": {
-            "mean": float(np.mean(list(num_keypoints.values()))),
-            "min": int(min(num_keypoints.values())),
-        },
-        "num_reconstructions": len(recs),
-        "seconds": {
-            "extract": round(t_extract, 2),
-            "match": round(t_match, 2),
-            "map": round(t_map, 2),
-            "final_ba": round(t_ba, 2),
-        },
-    }
-    log(
-        f"SfM: {len(registered)}/{len(views)} views registered, {rec.num_points3D()} points, "
-        f"mean reprojection error {stats['reprojection_error_px']['mean']:.3f} px, "
-        f"mean track length {stats['mean_track_length']:.2f}"
-    )
-    return SfmResult(sensor_from_rig, rig_from_world, sorted(registered), unregistered, stats, rec)
+
+def _ba_options(options: SfmOptions, robust: bool, iterations: int):
+    import pycolmap
+
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.refine_focal_length = False
+    ba.refine_principal_point = False
+    ba.refine_extra_params = False
+    ba.refine_sensor_from_rig = options.refine_rig
+    ba.print_summary = options.verbose
+    if robust:
+        ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+        ba.ceres.loss_function_scale = 1.0
+    so = ba.ceres.solver_options
+    so.max_num_iterations = iterations
+    so.function_tolerance = 1e-12
+    so.gradient_tolerance = 1e-12
+    so.parameter_tolerance = 1e-12
+    so.num_threads = options.num_threads
+    return ba
+
+
+def _refine_from_initial(
+    db_path, image_dir, sparse_dir, views, initial_poses, cams_present, camera_of, mapping, options
+):
+    """Rig-structured reconstruction from initial (nominal) poses: one rig (first camera = reference sensor,
+    initial relative poses), one frame per group; then rounds of triangulation from the database matches and
+    robust (Cauchy) bundle adjustment with shrinking reprojection thresholds."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction()
+    with pycolmap.Database.open(db_path) as db:
+        for cid in cams_present:
+            rec.add_camera_with_trivial_rig(db.read_camera(camera_of[cid]))
+        for image in db.read_all_images():
+            view = next(v for v in views if _image_name(v) == image.name)
+            kp = db.read_keypoints(image.image_id)[:, :2].astype(np.float64)
+            im = pycolmap.Image(
+                name=image.name, keypoints=kp, camera_id=image.camera_id, image_id=image.image_id
+            )
+            R, t = initial_poses[view]
+            rec.add_image_with_trivial_frame(
+                im, pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(R, float)), np.asarray(t, float))
+            )
+        if options.use_rig:
+            ref = cams_present[0]
+            ref_views = {v.group: initial_poses[v] for v in views if v.camera == ref}
+            rig_config = pycolmap.RigConfig()
+            rig_cams = []
+            for cid in cams_present:
+                rc = pycolmap.RigConfigCamera()
+                rc.image_prefix = f"{cid}/"
+                rc.ref_sensor = cid == ref
+                if cid != ref:
+                    # cam_from_ref averaged over groups is exact for a rigid nominal rig; take any group.
+                    v = next(v for v in views if v.camera == cid and v.group in ref_views)
+                    R, t = initial_poses[v]
+                    R0, t0 = ref_views[v.group]
+                    Rr = np.asarray(R) @ np.asarray(R0).T
+                    rc.cam_from_rig = pycolmap.Rigid3d(
+                        pycolmap.Rotation3d(Rr), np.asarray(t) - Rr @ np.asarray(t0)
+                    )
+                rig_cams.append(rc)
+            rig_config.cameras = rig_cams
+            pycolmap.apply_rig_config([rig_config], db, rec)
+    rounds = max(1, options.refine_rounds)
+    thresholds = np.geomspace(options.initial_max_reproj_px, options.final_max_reproj_px, rounds)
+    for thr in thresholds:
+        tri = mapping.triangulation
+        tri.create_max_angle_error = max(2.0, float(thr))
+        tri.continue_max_angle_error = max(2.0, float(thr))
+        tri.merge_max_reproj_error = float(thr)
+        tri.complete_max_reproj_error = float(thr)
+        tri.min_angle = 1.0
+        mapping.mapper.filter_max_reproj_error = float(thr)
+        rec = pycolmap.triangulate_points(
+            rec, db_path, image_dir, sparse_dir, clear_points=True, options=mapping
+        )
+        if rec.num_points3D() == 0:
+            return rec
+        pycolmap.bundle_adjustment(rec, _ba_options(options, robust=True, iterations=100))
+    # The last round is robust too: plain least squares let outlier tracks pull the weakly constrained rig.
+    pycolmap.bundle_adjustment(rec, _ba_options(options, robust=True, iterations=options.final_ba_iterations))
+    return rec
 
 
 def _reprojection_errors(rec) -> np.ndarray:

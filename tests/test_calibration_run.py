@@ -163,3 +163,73 @@ def test_missing_preprocess_outputs_are_named(tiny_work: WorkDir, tmp_path: Path
 
 def test_colmap_image_names_are_rig_folders():
     assert colmap_image_name("040", "cam03") == "cam03/040.png"
+
+
+# ---- SfM on the simulator's `small` capture (slow) -------------------------------------------------------------
+# Subset: all 9 groups x 20 cameras at the preset's 1024x684 raw resolution, but 6 of the 36 lights (simulating
+# all 36 takes ~6x longer; the well-lit image is the mean over the simulated lights).
+SMALL_LIGHTS = "0,7,14,21,28,35"
+
+
+@pytest.fixture(scope="module")
+def small_sfm(tmp_path_factory: pytest.TempPathFactory) -> tuple[WorkDir, dict, Path]:
+    from lightstage.capture.simulate import simulate_capture
+
+    root = tmp_path_factory.mktemp("small")
+    cap = simulate_capture(root / "capture", preset="small", seed=0, lights=SMALL_LIGHTS, progress=False)
+    work = WorkDir.at(root / "work")
+    work.root.mkdir()
+    work.capture_pointer.write_text(str(cap))
+    try:
+        from lightstage.preprocess.config import PreprocessConfig
+        from lightstage.preprocess.run import run_preprocess
+    except ImportError:  # the real preprocess stage is absent: same outputs from the stand-in
+        stand_in_preprocess(cap, work)
+    else:
+        run_preprocess(work, PreprocessConfig.from_dict({}), progress=False)
+    summary = run_calibrate(work, CalibrateConfig(method="sfm"), progress=False)
+    return work, summary, cap
+
+
+@pytest.mark.slow
+def test_sfm_small_registers_every_view_and_exports_match(small_sfm):
+    import pycolmap
+
+    work, summary, _ = small_sfm
+    report = json.loads(work.report("calibration").read_text())
+    assert report["status"] == "ok"
+    sfm = report["sfm"]
+    assert sfm["num_registered"] == 180 and not sfm["unregistered"]
+    assert sfm["reprojection_error_px"]["mean"] < 1.0
+    assert sfm["mean_track_length"] > 2.0
+    calib = Calibration.load(work.calibration)
+    assert calib.method == "sfm" and len(calib.views) == 180
+    # The COLMAP export (with the SfM points) re-read by pycolmap gives the calibration's poses.
+    rec = pycolmap.Reconstruction(str(work.calibration_dir / "colmap"))
+    assert rec.num_points3D() > 100
+    for image in rec.images.values():
+        cam_id, group = image.name.removesuffix(".png").split("/")
+        vc = next(c for v, c in calib.views.items() if v.group == group and v.camera == cam_id)
+        T = image.cam_from_world()
+        np.testing.assert_allclose(T.rotation.matrix(), vc.R, atol=1e-9)
+        np.testing.assert_allclose(np.asarray(T.translation), vc.t, atol=1e-9)
+    # Ground-truth errors are reported (raw and gauge-aligned), and are far from absurd.
+    gt = report["ground_truth"]
+    assert gt["num_views_compared"] == 180
+    assert gt["raw"]["rotation_error_deg"]["max"] < 2.0
+    assert gt["raw"]["camera_centre_error_mm"]["max"] < 50.0
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    reason="issue 6 accuracy targets not reached yet: measured ~0.24 deg / 6.5 mm raw mean, yaw ~0.15 deg "
+    "(see docs/calibration.md, Status)",
+    strict=False,
+)
+def test_sfm_small_meets_accuracy_targets(small_sfm):
+    work, _, _ = small_sfm
+    gt = json.loads(work.report("calibration").read_text())["ground_truth"]
+    assert gt["raw"]["rotation_error_deg"]["max"] <= 0.1
+    assert gt["raw"]["camera_centre_error_mm"]["max"] <= 2.0
+    assert gt["yaw_error_deg"]["max"] <= 0.05
+    assert gt["raw"]["light_position_error_mm"]["max"] <= 5.0
