@@ -166,17 +166,19 @@ def test_colmap_image_names_are_rig_folders():
 
 
 # ---- SfM on the simulator's `small` capture (slow) -------------------------------------------------------------
-# Subset: all 9 groups x 20 cameras at the preset's 1024x684 raw resolution, but 6 of the 36 lights (simulating
-# all 36 takes ~6x longer; the well-lit image is the mean over the simulated lights).
-SMALL_LIGHTS = "0,7,14,21,28,35"
+# Subset: all 9 groups x 20 cameras at the preset's raw resolution, but 6 evenly spread lights (simulating all of
+# them takes ~6x longer; the well-lit image is the mean over the simulated lights).
+SMALL_NUM_LIGHTS = 6
 
 
 @pytest.fixture(scope="module")
 def small_sfm(tmp_path_factory: pytest.TempPathFactory) -> tuple[WorkDir, dict, Path]:
-    from lightstage.capture.simulate import simulate_capture
+    from lightstage.capture.simulate import SIM_PRESETS, simulate_capture
 
     root = tmp_path_factory.mktemp("small")
-    cap = simulate_capture(root / "capture", preset="small", seed=0, lights=SMALL_LIGHTS, progress=False)
+    n = SIM_PRESETS["small"].num_lights
+    lights = sorted({int(round(x)) for x in np.linspace(0, n - 1, SMALL_NUM_LIGHTS)})
+    cap = simulate_capture(root / "capture", preset="small", seed=0, lights=lights, progress=False)
     work = WorkDir.at(root / "work")
     work.root.mkdir()
     work.capture_pointer.write_text(str(cap))
