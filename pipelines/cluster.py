@@ -64,7 +64,7 @@ class ClusterSettings:
     workers: int = 2
     threads_per_worker: int = 1
     memory_limit: str = "auto"  # per worker: "auto" (machine memory / workers) or e.g. "4GiB"
-    dashboard: str = ":0"  # LocalCluster dashboard address; ":0" picks a free port, "" disables it
+    dashboard: str = ":0"  # LocalCluster dashboard address; ":0" picks a free port, "" = ":0" but not printed
 
 
 @contextlib.contextmanager
@@ -90,7 +90,8 @@ def dask_client(settings: ClusterSettings, verbose: bool = True) -> Iterator[Any
             threads_per_worker=settings.threads_per_worker,
             processes=True,
             memory_limit=settings.memory_limit,
-            dashboard_address=settings.dashboard or None,
+            dashboard_address=settings.dashboard
+            or ":0",  # the HTTP server starts anyway: never on a fixed port
             silence_logs=logging.ERROR,
             env=env,
         )
