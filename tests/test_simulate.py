@@ -328,3 +328,16 @@ def test_shading_does_not_create_energy() -> None:
         assert (head_on > 0.3).all() and (head_on <= 1.0).all()
         total = np.mean([flux(d) for d in light_dirs], axis=0) * 4 * np.pi
         assert (total <= np.pi).all(), total / np.pi
+
+
+def test_lens_flare_brightens_the_background(tiny_capture: Path) -> None:
+    cap = open_capture(tiny_capture)
+    flares = json.loads((tiny_capture / "ground_truth" / "nuisances.json").read_text())["flares"]
+    assert flares, "tiny should contain some frames with lens flare"
+    f = max(flares, key=lambda r: r["strength"])
+    m = _mask(tiny_capture, f["group"], f["camera"])
+    lit = read_exr(cap.frame_path(FrameId(f["group"], f["camera"], f["light"]))).astype(np.float32)
+    flare_lights = {r["light"] for r in flares if (r["group"], r["camera"]) == (f["group"], f["camera"])}
+    other = next(k for k in range(len(cap.stage.lights)) if k not in flare_lights)
+    plain = read_exr(cap.frame_path(FrameId(f["group"], f["camera"], other))).astype(np.float32)
+    assert lit[~m].mean() > 3 * plain[~m].mean()
