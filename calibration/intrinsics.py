@@ -68,8 +68,11 @@ def detect_charuco(image: np.ndarray, spec: CharucoBoardSpec) -> tuple[np.ndarra
     return obj.reshape(-1, 3).astype(np.float32), img.reshape(-1, 2).astype(np.float32)
 
 
-def calibrate_intrinsics(images: list[Path], spec: CharucoBoardSpec, min_images: int = 4) -> IntrinsicsFit:
-    """Fit K and distortion of one camera from its board images."""
+def calibrate_intrinsics(
+    images: list[Path], spec: CharucoBoardSpec, min_images: int = 4, fit_k3: bool = False
+) -> IntrinsicsFit:
+    """Fit K and distortion of one camera from its board images (k3 held at 0 unless `fit_k3`: with board
+    views that do not reach the image corners k1, k2, k3 are strongly correlated and k3 overfits)."""
     import cv2
 
     obj_pts, img_pts, size = [], [], None
@@ -92,7 +95,8 @@ def calibrate_intrinsics(images: list[Path], spec: CharucoBoardSpec, min_images:
             f"ChArUco board found in {len(obj_pts)} of {len(images)} images (need {min_images}); "
             "check the board description (--squares, --square-length, --marker-length, --dictionary)"
         )
-    rms, K, dist, _, _ = cv2.calibrateCamera(obj_pts, img_pts, size, None, None)
+    flags = 0 if fit_k3 else cv2.CALIB_FIX_K3
+    rms, K, dist, _, _ = cv2.calibrateCamera(obj_pts, img_pts, size, None, None, flags=flags)
     K = np.asarray(K, dtype=np.float64)
     K[0, 2] += 0.5  # OpenCV: first pixel centre at 0; lightstage: at 0.5
     K[1, 2] += 0.5
