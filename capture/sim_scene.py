@@ -269,11 +269,13 @@ def _smoothstep(a: float, b: float, x: np.ndarray) -> np.ndarray:
 def object_albedo(tex: SolidTexture, p: np.ndarray, base: np.ndarray) -> np.ndarray:
     """(N, 3) surface albedo of the wax: marbled veins, fine mottling and dark flecks (rich for SIFT)."""
     marble = tex.fbm(0, p, (0.05, 0.025, 0.012, 0.006))
-    veins = 1.0 - _smoothstep(0.0, 0.06, np.abs(marble - 0.5))
+    veins = 1.0 - _smoothstep(0.0, 0.05, np.abs(marble - 0.5))
     fine = tex.fbm(1, p, (0.008, 0.004, 0.002))
-    flecks = _smoothstep(0.60, 0.68, tex.fbm(2, p, (0.009, 0.0045)))
-    lum = 0.55 + 0.45 * (fine - 0.5) * 2.2
-    lum = lum * (1.0 - 0.55 * veins) * (1.0 - 0.75 * flecks)
+    blots = tex.fbm(2, p, (0.014, 0.007, 0.0035))
+    flecks = _smoothstep(0.56, 0.62, blots)  # dark blots, 3-15 mm, sharp-edged
+    pale = _smoothstep(0.40, 0.34, blots)  # and pale ones
+    lum = 0.55 + 0.9 * (fine - 0.5)
+    lum = lum * (1.0 - 0.6 * veins) * (1.0 - 0.8 * flecks) * (1.0 + 0.6 * pale)
     tint = tex.fbm(3, p, (0.06, 0.03))[:, None]
     colour = base[None, :] * (0.8 + 0.4 * tint * np.array([1.0, 0.85, 0.6], np.float32))
     return np.clip(colour * lum[:, None], 0.0, 1.0).astype(np.float32)

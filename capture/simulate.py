@@ -274,10 +274,14 @@ def simulate_capture(
 
 def _run_jobs(jobs: list[ViewJob], workers: int | None, progress: bool) -> list[ViewRecord]:
     """Render views serially or in a process pool; results in job order."""
+    import multiprocessing as mp
+
     from tqdm import tqdm
 
     n = workers if workers is not None else min(len(os.sched_getaffinity(0)), 8)
     n = max(1, min(n, len(jobs)))
+    if mp.current_process().daemon:  # e.g. inside a dask worker: no child processes allowed
+        n = 1
     bar = tqdm(total=len(jobs), desc="simulate views", unit="view", disable=not progress)
     records: list[ViewRecord] = []
     if n == 1:
@@ -285,8 +289,6 @@ def _run_jobs(jobs: list[ViewJob], workers: int | None, progress: bool) -> list[
             records.append(render_view(job))
             bar.update()
     else:
-        import multiprocessing as mp
-
         with ProcessPoolExecutor(n, mp_context=mp.get_context("spawn")) as pool:
             for rec in pool.map(run_view_job, jobs, chunksize=1):
                 records.append(rec)
