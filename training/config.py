@@ -124,6 +124,11 @@ class EvalConfig:
     )
     max_images: int = 0  # 0: every test image
 
+    @classmethod
+    def from_dict(cls, d: dict[str, Any] | None) -> EvalConfig:
+        """Build from a dict (the `eval` stage's own section); unknown keys or wrong types raise LightstageError."""
+        return _from_dict(cls, d or {}, "eval.")
+
 
 @dataclass
 class TrainConfig:

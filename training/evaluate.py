@@ -21,6 +21,7 @@ from lightstage.atomic import write_json_atomic
 from lightstage.cameras import PinholeCamera, pixel_centers, pixel_rays
 from lightstage.errors import LightstageError
 from lightstage.tonemap import tonemap, tonemap_u8
+from lightstage.training.config import EvalConfig
 from lightstage.training.data import TestImage
 from lightstage.training.metrics import image_metrics
 from lightstage.training.model import RelightModel
@@ -112,7 +113,7 @@ def evaluate_images(
 
 def run_eval(
     work: WorkDir,
-    config=None,
+    config: EvalConfig | None = None,
     client=None,
     progress: bool = True,
     checkpoint: Path | None = None,
