@@ -120,7 +120,7 @@ def true_geometry(stage: Stage, seed: int, jitter: Jitter = Jitter()) -> TrueGeo
 def _parse_indices(
     spec: str | list | tuple | None, count: int, what: str, names: list[str] | None = None
 ) -> list[int]:
-    """Parse a selector ("0,3,5-8", names, or a list) into sorted unique 0-based indices."""
+    """Parse a selector ("0,3,5-8", "0-31:2" (with a step), names, or a list) into sorted unique indices."""
     if spec is None:
         return list(range(count))
     items = spec.split(",") if isinstance(spec, str) else list(spec)
@@ -135,16 +135,17 @@ def _parse_indices(
         try:
             if "-" in item[1:]:
                 a, b = item.split("-", 1)
-                lo, hi = int(a), int(b)
-                if lo > hi:
+                b, _, step = b.partition(":")
+                lo, hi, st = int(a), int(b), int(step or 1)
+                if lo > hi or st < 1:
                     raise ValueError
-                out.update(range(lo, hi + 1))
+                out.update(range(lo, hi + 1, st))
             else:
                 out.add(int(item))
         except ValueError:
             known = f" or one of {', '.join(names[:6])}{'...' if len(names) > 6 else ''}" if names else ""
             raise LightstageError(
-                f"--{what}: cannot parse {item!r} (use indices like 0,3,5-8{known})"
+                f"--{what}: cannot parse {item!r} (use indices like 0,3,5-8 or 0-31:2{known})"
             ) from None
     bad = [i for i in out if not 0 <= i < count]
     if bad:

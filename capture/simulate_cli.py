@@ -19,7 +19,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same bytes)")
     p.add_argument("--groups", help="group names or indices, e.g. 000,040 or 0-2")
     p.add_argument("--cameras", help="camera ids or indices, e.g. cam00,cam03 or 0-4")
-    p.add_argument("--lights", help="light indices, e.g. 0,10,20-25")
+    p.add_argument("--lights", help="light indices, e.g. 0,10,20-25 or 0-31:2 (every other)")
     p.add_argument("--workers", type=int, help="worker processes (default: available cores)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_simulate)

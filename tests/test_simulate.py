@@ -230,6 +230,8 @@ def test_bad_arguments(tmp_path: Path) -> None:
         simulate_capture(tmp_path / "x", "huge")
     with pytest.raises(LightstageError, match="--lights"):
         simulate_capture(tmp_path / "x", "tiny", lights="3-1")
+    with pytest.raises(LightstageError, match="--cameras"):
+        simulate_capture(tmp_path / "x", "tiny", cameras="cam99")
     with pytest.raises(LightstageError, match="select a subset"):
         simulate_capture(tmp_path / "x", "paper")
     (tmp_path / "full").mkdir()
@@ -253,7 +255,7 @@ def test_cli(tmp_path: Path) -> None:
             "--cameras",
             "cam01",
             "--lights",
-            "0,5",
+            "0-5:5",
             "--quiet",
         ]
     )
