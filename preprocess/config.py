@@ -8,8 +8,8 @@ import json
 from dataclasses import dataclass
 from typing import Any
 
-from lightstage.capture.frames import COMPRESSIONS
 from lightstage.errors import LightstageError
+from lightstage.preprocess.processed import COMPRESSIONS
 
 
 @dataclass(frozen=True)
@@ -18,7 +18,7 @@ class PreprocessConfig:
     the simulator and sized for the reference stage)."""
 
     # ---- downscale / output frames
-    compression: str = "zip"  # processed frames: zip | piz | none (lossless only)
+    compression: str = "zip"  # processed frames: zip | piz | rle | none (lossless only; rle is fastest)
     band_rows: int = 256  # raw rows per band when downscaling (multiple of 4; bounds temporaries)
     # ---- scheduling
     chunk_lights: int = 32  # lights per task: a chunk's partial statistics merge with the others in a tree

@@ -65,6 +65,7 @@ class ChunkRecord:
     reused: int = 0
     problems: tuple[tuple[int, str], ...] = ()
     seconds: float = 0.0
+    cpu_seconds: float = 0.0  # CPU time of the task's process (all its threads) while it ran
     resumed: bool = False  # the partial statistics already existed
 
 
@@ -160,7 +161,7 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
         from lightstage.threads import set_library_threads
 
         set_library_threads(1)
-    start = time.perf_counter()
+    start, cpu0 = time.perf_counter(), time.process_time()
     work = WorkDir.at(job.work_root)
     view = ViewId(job.group, job.camera)
     cfg = job.config
@@ -228,7 +229,14 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
         },
     )
     return ChunkRecord(
-        job.group, job.camera, job.index, processed, reused, tuple(problems), time.perf_counter() - start
+        job.group,
+        job.camera,
+        job.index,
+        processed,
+        reused,
+        tuple(problems),
+        time.perf_counter() - start,
+        time.process_time() - cpu0,
     )
 
 
@@ -315,7 +323,7 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
             "lit_thresholds": np.concatenate(taus) if taus else np.zeros(0),
         },
     )
-    write_exr(work.mean_image(view), to_half(stats.mean), compression=cfg.compression)
+    write_exr(work.mean_image(view), to_half(stats.mean), compression="zip")
     write_image(work.mask(view), (mask * 255).astype(np.uint8))
     write_image(work.zones(view), zones)
     record = ViewRecord(

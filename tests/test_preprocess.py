@@ -65,11 +65,12 @@ def test_saturation_flags_any_of_sixteen_samples() -> None:
     np.testing.assert_array_equal(downscale(px.astype(np.float32), CUTOFF).saturated, expected)
 
 
-def test_processed_frame_roundtrip_and_validity(tmp_path: Path) -> None:
+@pytest.mark.parametrize("compression", ["zip", "rle"])
+def test_processed_frame_roundtrip_and_validity(tmp_path: Path, compression: str) -> None:
     rng = np.random.default_rng(2)
     d = downscale(_frame(rng, 32, 48), CUTOFF)
     path = tmp_path / "f.exr"
-    write_processed(path, to_half(d.rgb), d.saturated)
+    write_processed(path, to_half(d.rgb), d.saturated, compression)
     rgb, sat = read_processed(path, (12, 8))
     np.testing.assert_array_equal(rgb, d.rgb.astype(np.float16).astype(np.float32))
     np.testing.assert_array_equal(sat, d.saturated)
