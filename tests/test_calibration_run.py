@@ -194,6 +194,9 @@ def small_sfm(tmp_path_factory: pytest.TempPathFactory) -> tuple[WorkDir, dict, 
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(
+    1800
+)  # simulate + preprocess + SfM: ~5 min on 2 idle cores, the fixture runs in this test
 def test_sfm_small_registers_every_view_and_exports_match(small_sfm):
     import pycolmap
 
@@ -223,6 +226,7 @@ def test_sfm_small_registers_every_view_and_exports_match(small_sfm):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1800)
 @pytest.mark.xfail(
     reason="issue 6 accuracy targets not reached yet: measured ~0.24 deg / 6.5 mm raw mean, yaw ~0.15 deg "
     "(see docs/calibration.md, Status)",
