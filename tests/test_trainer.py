@@ -4,6 +4,7 @@ DDP (gloo, 2 CPU processes) keeps parameters identical across ranks."""
 from __future__ import annotations
 
 import math
+import statistics
 
 import pytest
 import torch
@@ -77,7 +78,8 @@ def test_tiny_synthetic_problem_learns_and_beats_constant_baseline(tmp_path):
     rows = (tmp_path / "train" / "log.csv").read_text().splitlines()[1:]
     losses = [float(r.split(",")[1]) for r in rows]
     assert math.isfinite(summary["final_loss"])
-    assert sum(losses[-5:]) / 5 < 0.5 * sum(losses[:3]) / 3
+    # logged losses are means over 10 steps; the weighted L2 spikes on single rays, so compare medians
+    assert statistics.median(losses[-10:]) < 0.5 * statistics.median(losses[:3])
     trained = load_trained(WorkDir(tmp_path))
     result = evaluate_images(trained.model, src.test_images(3), trained.exposure, trained.baseline_rgb)
     mean = result["mean"]

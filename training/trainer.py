@@ -148,7 +148,7 @@ def fit(
     )
     t_start, rays_done, t_window, rays_window = time.perf_counter(), 0, time.perf_counter(), 0
     parts: dict[str, float] = {}
-    loss_value = float("nan")
+    loss_value, window_losses = float("nan"), []
     while step < total:
         batch = {k: v.to(device, non_blocking=True) for k, v in next(batches).items()}
         model.update_occupancy(step, cfg.seed)
@@ -174,13 +174,14 @@ def fit(
         rays_done += n_rays
         rays_window += n_rays
         loss_value = float(loss.detach())
+        window_losses.append(loss_value)
         bar.update(1)
         if log is not None and (step % cfg.log_every == 0 or step == total):
             now = time.perf_counter()
             occ = model.occupancy.occupied_fraction() if model.occupancy is not None else 1.0
             row = {
                 "step": step,
-                "loss": loss_value,
+                "loss": float(np.mean(window_losses)),
                 **parts,
                 "lr": sched.get_last_lr()[0],
                 "rays_per_s": rays_window / max(now - t_window, 1e-9),
@@ -188,7 +189,7 @@ def fit(
             }
             log.add(row)
             bar.set_postfix(loss=f"{loss_value:.4g}")
-            t_window, rays_window = now, 0
+            t_window, rays_window, window_losses = now, 0, []
         if cfg.eval.every and step % cfg.eval.every == 0 and writer_rank and test_images:
             psnrs = preview(
                 model, test_images[: cfg.eval.images], stats, out_dir / "previews", step, cfg.eval.chunk, log
