@@ -135,6 +135,16 @@ def _file_signature(path: str) -> list[float]:
         return [-1.0, -1.0]
 
 
+def _remove_stale_temps(directory: Path, stems: list[str]) -> None:
+    """Delete temp files a killed writer left for these outputs (lightstage.atomic names them
+    `.<stem>.<random>.tmp<suffix>`); only the task that owns the outputs calls this."""
+    if not directory.is_dir():
+        return
+    for stem in stems:
+        for p in directory.glob(f".{stem}.*.tmp*"):
+            p.unlink(missing_ok=True)
+
+
 def _reason(e: BaseException) -> str:
     if isinstance(e, LightstageError):
         return str(e)
@@ -182,6 +192,10 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
             partial.unlink(missing_ok=True)  # unreadable: redo the chunk
     W, H = job.raw_size
     w, h = W // DOWNSCALE, H // DOWNSCALE
+    _remove_stale_temps(
+        work.frame(FrameId(job.group, job.camera, 0)).parent, [f"{lt:03d}" for lt in job.lights]
+    )
+    _remove_stale_temps(partial.parent, [partial.stem])
     acc = StatsAccumulator(h, w)
     thumbs, sthumbs, taus = [], [], []
     problems: list[tuple[int, str]] = []
@@ -315,6 +329,7 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
         gt_iou = iou(mask, read_gt_mask(job.gt_mask, (w, h)))
 
     vdir = work.view_dir(view)
+    _remove_stale_temps(vdir, ["stats", "mean", "mask", "zones", "view"])
     stats.save(
         vdir / "stats.npz",
         extras={
@@ -630,6 +645,8 @@ def write_previews(
     exposure = config.exposure or (1.0 / float(np.median(levels)) if levels else 1.0)
     exposure = float(np.float32(exposure))
     book_path = work.preprocess_dir / PREVIEWS
+    _remove_stale_temps(work.preprocess_dir, [Path(PREVIEWS).stem])
+    _remove_stale_temps(work.report("preprocess").parent, ["preprocess"])
     try:
         book = json.loads(book_path.read_text()) if book_path.is_file() else {}
     except (OSError, ValueError):
@@ -640,6 +657,7 @@ def write_previews(
         rec = records[view]
         stamp = {"exposure": exposure, "view_key": rec.key, "lights": len(rec.lights)}
         wellit, over = work.wellit(view), work.view_dir(view) / "overlay.png"
+        _remove_stale_temps(work.view_dir(view), ["wellit", "overlay"])
         if book.get(str(view)) == stamp and wellit.is_file() and over.is_file():
             continue
         mean = read_exr(work.mean_image(view)).astype(np.float32)
