@@ -244,8 +244,9 @@ def write_report(
     lines = [
         "# lightstage demo report",
         "",
-        f"Simulated capture `{preset}` in `{work.root / 'capture'}`, processed in `{work.root}` "
-        f"in {seconds / 60:.1f} minutes on this machine. Per-stage records: `reports/<stage>.json`.",
+        f"Simulated capture `{preset}` in `{work.root / 'capture'}`, processed in `{work.root}`. "
+        f"This run of the demo took {seconds / 60:.1f} minutes (stages that were up to date were skipped; "
+        "the record column has the time each stage took when it ran). Per-stage records: `reports/<stage>.json`.",
         "",
         "## Stages",
         "",
