@@ -4,7 +4,6 @@ DDP (gloo, 2 CPU processes) keeps parameters identical across ranks."""
 from __future__ import annotations
 
 import math
-import statistics
 
 import pytest
 import torch
@@ -71,18 +70,30 @@ def test_ddp_gloo_two_processes_keep_parameters_identical(tmp_path):
 @pytest.mark.slow
 @pytest.mark.timeout(1800)  # ~30 s on 2 idle cores; generous for a shared, overloaded machine
 def test_tiny_synthetic_problem_learns_and_beats_constant_baseline(tmp_path):
+    from lightstage.training.model import RelightModel
+
     torch.set_num_threads(2)
     cfg = load_config("tiny", {"optim": {"steps": 250, "batch_rays": 256}, "log_every": 10})
     src = SyntheticSphere(batch_size=256)
+    held_out = src.batch(10_000)
+
+    def median_ray_loss(model) -> float:
+        # the weighted L2 per ray on a held-out batch; the median, because single rays grazing the silhouette
+        # that render ~0 give (y / eps)^2 ~ 1e4 and dominate the mean (docs/model.md)
+        with torch.no_grad():
+            out = model(held_out["origins"], held_out["directions"], held_out["light_directions"])
+        r = ((out["rgb"] - held_out["rgb"]) / (out["rgb"] + cfg.loss.epsilon)) ** 2
+        return float(r.mean(-1).median())
+
+    torch.manual_seed(cfg.seed)
+    before = median_ray_loss(RelightModel(cfg.model, src.centre, src.scale))
     summary = fit(cfg, src, tmp_path / "train", src.centre, src.scale, progress=False)
-    rows = (tmp_path / "train" / "log.csv").read_text().splitlines()[1:]
-    losses = [float(r.split(",")[1]) for r in rows]
     assert math.isfinite(summary["final_loss"])
-    # logged losses are means over 10 steps; the weighted L2 spikes on single rays, so compare medians
-    assert statistics.median(losses[-10:]) < 0.5 * statistics.median(losses[:3])
     trained = load_trained(WorkDir(tmp_path))
+    after = median_ray_loss(trained.model)
     result = evaluate_images(trained.model, src.test_images(3), trained.exposure, trained.baseline_rgb)
     mean = result["mean"]
-    print("synthetic sphere PSNR", mean)
+    print("synthetic sphere: median ray loss", before, "->", after, "; test", mean)
+    assert after < 0.2 * before
     assert mean["psnr"] > mean["baseline_psnr"] + 5.0
     assert mean["ssim"] > mean["baseline_ssim"]
