@@ -133,11 +133,15 @@ class Stage:
             "centre_height": float(self.centre_height),
             "resolution": {"width": int(self.width), "height": int(self.height)},
             "saturation": float(self.saturation),
-            "turntable_axis": {"direction": list(self.axis.direction), "point": list(self.axis.point)},
+            "turntable_axis": {
+                "direction": np.asarray(self.axis.direction, float).tolist(),
+                "point": np.asarray(self.axis.point, float).tolist(),
+            },
             "groups": [{"name": g.name, "yaw_deg": float(g.yaw_deg)} for g in self.groups],
             "cameras": [cam(c) for c in self.cameras],
             "lights": [
-                {"index": lt.index, "position": np.asarray(lt.position, float).tolist()} for lt in self.lights
+                {"index": int(lt.index), "position": np.asarray(lt.position, float).tolist()}
+                for lt in self.lights
             ],
         }
 

@@ -117,3 +117,19 @@ def test_yaml_quoted_group_names(paper, tmp_path):
     paper.save(path)
     raw = yaml.safe_load(path.read_text())
     assert all(isinstance(g["name"], str) for g in raw["groups"])
+
+
+def test_save_after_replace_with_numpy_axis(paper, tmp_path):
+    """A stage edited in code (numpy floats in the axis and light positions) still saves as plain YAML."""
+    import dataclasses
+
+    from lightstage.rig import TurntableAxis
+
+    direction = np.array([0.0, 0.01, 1.0]) / np.linalg.norm([0.0, 0.01, 1.0])
+    axis = TurntableAxis(direction=tuple(direction), point=tuple(np.array([0.001, 0.0, 0.0])))
+    edited = dataclasses.replace(paper, axis=axis)
+    path = tmp_path / "stage.yaml"
+    edited.save(path)
+    again = load_stage(path)
+    np.testing.assert_allclose(again.axis.point, [0.001, 0.0, 0.0])
+    assert again.to_dict()["turntable_axis"] == edited.to_dict()["turntable_axis"]
