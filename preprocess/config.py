@@ -18,8 +18,12 @@ class PreprocessConfig:
     the simulator and sized for the reference stage)."""
 
     # ---- downscale / output frames
-    compression: str = "zip"  # processed frames: zip | piz | rle | none (lossless only; rle is fastest)
-    band_rows: int = 256  # raw rows per band when downscaling (multiple of 4; bounds temporaries)
+    # processed frames: piz | zip | rle | none (lossless only). PIZ (wavelet) is both smaller and ~40% faster
+    # to write than ZIP on noisy HDR frames (docs/benchmarks.md); rle is fastest but 45% larger.
+    compression: str = "piz"
+    band_rows: int = (
+        64  # raw rows decoded and downscaled per band (multiple of 4): small enough to stay in cache
+    )
     # ---- scheduling
     chunk_lights: int = 32  # lights per task: a chunk's partial statistics merge with the others in a tree
     window: int = 0  # tasks in flight with a dask client (0: 4 per worker thread)

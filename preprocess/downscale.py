@@ -1,6 +1,8 @@
 """Decode a raw frame and make its exact 4x area-average downscale plus the per-pixel saturation flag.
 
-The raw frame is decoded once (OpenEXR, interleaved RGB). Row bands are converted half -> float32 with
+The preprocess stage decodes a raw frame in row bands (OpenImageIO scanline reads, `decode_downscale`) and
+downscales each band while it is still in cache, which costs about the decode alone; `decode_raw` (OpenEXR,
+whole frame) + `downscale` gives the same numbers for an in-memory frame. Row bands are converted half -> float32 with
 PyTorch (vectorised; numpy's half conversion is ~20x slower) into a reused buffer and averaged with
 `cv2.resize(INTER_AREA)`, whose integer-factor path sums each 4x4 block in float32 and scales by 1/16 (a
 power of two, so no extra rounding). Saturation is tested on the raw half bits: for non-negative halfs the
@@ -37,15 +39,9 @@ class Downscaled:
     saturated: np.ndarray
 
 
-def decode_raw(path: str | os.PathLike[str], size: tuple[int, int]) -> np.ndarray:
-    """Decode a raw frame's RGB as an (H, W, 3) half or float array (possibly a strided view).
-
-    Header problems (not an EXR, truncated, wrong size, missing channels) raise a LightstageError naming
-    the file before any pixels are decoded.
-    """
-    import OpenEXR
-
-    path = Path(path)
+def _check_raw_header(path: Path, size: tuple[int, int]) -> str:
+    """Refuse a raw frame whose header is not a complete RGB half/float EXR of `size`; return the RGB
+    sample type ('half' or 'float')."""
     header = read_exr_header(path)
     problem = getattr(header, "chunk_problem", None)
     if problem:
@@ -60,6 +56,19 @@ def decode_raw(path: str | os.PathLike[str], size: tuple[int, int]) -> np.ndarra
     kinds = {header.channels[c] for c in "RGB"}
     if len(kinds) != 1 or not kinds <= {"half", "float"}:
         raise LightstageError(f"{path}: R, G, B must all be half or all float, got {sorted(kinds)}")
+    return kinds.pop()
+
+
+def decode_raw(path: str | os.PathLike[str], size: tuple[int, int]) -> np.ndarray:
+    """Decode a raw frame's RGB as an (H, W, 3) half or float array (possibly a strided view).
+
+    Header problems (not an EXR, truncated, wrong size, missing channels) raise a LightstageError naming
+    the file before any pixels are decoded.
+    """
+    import OpenEXR
+
+    path = Path(path)
+    _check_raw_header(path, size)
     try:
         f = OpenEXR.File(str(path))
         channels = f.parts[0].channels
@@ -82,45 +91,113 @@ def decode_raw(path: str | os.PathLike[str], size: tuple[int, int]) -> np.ndarra
     return pixels
 
 
+class BandDownscaler:
+    """Exact `factor`x area average of a frame fed as row bands (multiples of `factor` rows, top to bottom),
+    plus the saturation flags; the float32 band buffer is reused, so a frame never exists in float32."""
+
+    def __init__(self, size: tuple[int, int], cutoff: float, band_rows: int, factor: int = DOWNSCALE) -> None:
+        import torch
+
+        W, H = size
+        if H % factor or W % factor:
+            raise LightstageError(f"frame {W}x{H}: size must be a multiple of {factor}")
+        self.factor, self.size, self.cutoff = factor, (W, H), cutoff
+        self.rgb = np.empty((H // factor, W // factor, 3), np.float32)
+        self.saturated = np.zeros((H // factor, W // factor), bool)
+        self._buf = torch.empty((min(band_rows, H), W, 3), dtype=torch.float32)
+        self._cut_bits = int(saturation_half(cutoff).view(np.int16))
+        self._row = 0
+
+    def add(self, band: np.ndarray) -> None:
+        """Average the next (n, W, 3) half/float rows into the output (n a multiple of the factor)."""
+        import cv2
+        import torch
+
+        f, (W, H), y = self.factor, self.size, self._row
+        n = band.shape[0]
+        if band.shape[1:] != (W, 3) or n % f or n > self._buf.shape[0] or y + n > H:
+            raise LightstageError(f"band of shape {band.shape} does not fit a {W}x{H} frame at row {y}")
+        buf = self._buf[:n]
+        buf.copy_(torch.from_numpy(band))
+        rows = slice(y // f, (y + n) // f)
+        cv2.resize(buf.numpy(), (W // f, n // f), dst=self.rgb[rows], interpolation=cv2.INTER_AREA)
+        if band.dtype == np.float16:
+            # for non-negative halfs the int16 view orders like the value: no float test needed unless
+            # the band reaches the cutoff (NaN bit patterns also compare high; such frames are rejected later)
+            bits = band.view(np.int16)
+            if int(torch.from_numpy(bits).max()) >= self._cut_bits:
+                self.saturated[rows] = _block_any((bits >= self._cut_bits).any(axis=-1), f)
+        elif float(buf.max()) >= self.cutoff:
+            self.saturated[rows] = _block_any((buf.numpy() >= self.cutoff).any(axis=-1), f)
+        self._row = y + n
+
+    def result(self) -> Downscaled:
+        if self._row != self.size[1]:
+            raise LightstageError(f"frame ended after {self._row} of {self.size[1]} rows")
+        return Downscaled(self.rgb, self.saturated)
+
+
 def downscale(pixels: np.ndarray, cutoff: float, band_rows: int = 256, factor: int = DOWNSCALE) -> Downscaled:
     """Exact `factor`x area average of (H, W, 3) half/float pixels in float32, and the saturation flags
     (a processed pixel is saturated when any channel of any of its factor^2 sources is >= cutoff)."""
-    import cv2
-    import torch
-
     H, W, C = pixels.shape
     if H % factor or W % factor or C != 3:
         raise LightstageError(f"frame {W}x{H}x{C}: size must be a multiple of {factor} with 3 channels")
     band_rows = max(factor, band_rows - band_rows % factor)
-    h, w = H // factor, W // factor
-    out = np.empty((h, w, 3), np.float32)
-    sat = np.zeros((h, w), bool)
-    buf = torch.empty((min(band_rows, H), W, 3), dtype=torch.float32)
-    buf_np = buf.numpy()
-    src = torch.from_numpy(np.asarray(pixels))
-    half = pixels.dtype == np.float16
-    if half:
-        bits_src = torch.from_numpy(np.asarray(pixels).view(np.int16))
-        cut_bits = int(saturation_half(cutoff).view(np.int16))
+    scaler = BandDownscaler((W, H), cutoff, band_rows, factor)
+    pixels = np.asarray(pixels)
     for y in range(0, H, band_rows):
-        n = min(band_rows, H - y)
-        buf[:n].copy_(src[y : y + n])
-        cv2.resize(
-            buf_np[:n],
-            (w, n // factor),
-            dst=out[y // factor : (y + n) // factor],
-            interpolation=cv2.INTER_AREA,
-        )
-        if half:
-            if int(bits_src[y : y + n].max()) >= cut_bits:
-                flags = np.asarray(pixels[y : y + n]).view(np.int16) >= cut_bits
-                # NaN bit patterns also compare high; such frames are rejected as non-finite anyway
-                sat[y // factor : (y + n) // factor] = _block_any(flags.any(axis=-1), factor)
-        else:
-            band = buf_np[:n]
-            if float(band.max()) >= cutoff:
-                sat[y // factor : (y + n) // factor] = _block_any((band >= cutoff).any(axis=-1), factor)
-    return Downscaled(out, sat)
+        scaler.add(pixels[y : y + band_rows])
+    return scaler.result()
+
+
+def decode_downscale(
+    path: str | os.PathLike[str],
+    size: tuple[int, int],
+    cutoff: float,
+    band_rows: int = 64,
+    factor: int = DOWNSCALE,
+) -> Downscaled:
+    """Decode a raw frame in row bands (OpenImageIO scanline reads) and downscale each band while it is in
+    cache: the same result as `downscale(decode_raw(...))` at about the cost of the decode alone, and the
+    full-resolution frame is never held in memory (a few MB per band instead of 268 MB at 8192x5464).
+
+    Header problems raise a LightstageError naming the file before any pixels are decoded, as in
+    `decode_raw`; undecodable pixel data raises one naming the file and the rows.
+    """
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    kind = _check_raw_header(path, size)
+    W, H = size
+    band_rows = max(factor, band_rows - band_rows % factor)
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise LightstageError(f"{path}: cannot open ({_first_line(oiio.geterror())})")
+    try:
+        spec = inp.spec()
+        names = list(spec.channelnames)
+        idx = [names.index(c) for c in "RGB"]
+        lo, hi = min(idx), max(idx) + 1
+        pick = None if idx == list(range(lo, hi)) else [i - lo for i in idx]
+        y0 = spec.y
+        scaler = BandDownscaler(size, cutoff, band_rows, factor)
+        for y in range(0, H, band_rows):
+            n = min(band_rows, H - y)
+            band = inp.read_scanlines(0, 0, y0 + y, y0 + y + n, 0, lo, hi, kind)
+            if band is None or band.shape != (n, W, hi - lo):
+                raise LightstageError(
+                    f"{path}: corrupt EXR pixel data in rows {y}-{y + n - 1} ({_first_line(inp.geterror())})"
+                )
+            scaler.add(band if pick is None else np.ascontiguousarray(band[..., pick]))
+        return scaler.result()
+    finally:
+        inp.close()
+
+
+def _first_line(text: str) -> str:
+    lines = str(text).strip().splitlines()
+    return lines[0][:200] if lines else "no details"
 
 
 def _block_any(flags: np.ndarray, factor: int) -> np.ndarray:

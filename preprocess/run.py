@@ -156,7 +156,7 @@ def _reason(e: BaseException) -> str:
 def process_chunk(job: ChunkJob) -> ChunkRecord:
     """Downscale (or read back) every frame of a chunk, accumulate its statistics and thumbnails, and save
     them as the chunk's partial file. Per-frame problems are recorded, never raised."""
-    from lightstage.preprocess.downscale import decode_raw, downscale
+    from lightstage.preprocess.downscale import decode_downscale
     from lightstage.preprocess.flare import lit_threshold, thumbnail
     from lightstage.preprocess.processed import (
         processed_ok,
@@ -207,9 +207,7 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
                 rgb_h, sat = read_processed_half(out, (w, h))
                 reused += 1
             else:
-                pixels = decode_raw(raw, (W, H))
-                small = downscale(pixels, job.cutoff, cfg.band_rows)
-                del pixels
+                small = decode_downscale(raw, (W, H), job.cutoff, cfg.band_rows)
                 rgb = small.rgb
                 if job.exposure_scale != 1.0:
                     rgb *= np.float32(job.exposure_scale)
