@@ -18,6 +18,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--method", choices=["sfm", "nominal"], default="sfm", help="sfm (default) or nominal")
     p.add_argument("--intrinsics", help="intrinsics JSON from `lightstage calibrate-intrinsics`")
     p.add_argument("--threads", type=int, default=2, help="pycolmap threads (default 2)")
+    p.add_argument(
+        "--sfm-max-side",
+        type=int,
+        default=2048,
+        help="SfM images at the largest raw/f resolution with long side <= this (0: the processed images)",
+    )
     p.add_argument("--keep-sfm", action="store_true", help="keep WORK/calibration/sfm (images, database)")
     p.add_argument("--quiet", action="store_true", help="less output")
     p.set_defaults(func=_calibrate)
@@ -52,6 +58,7 @@ def _calibrate(args: argparse.Namespace) -> int:
             "intrinsics": args.intrinsics,
             "num_threads": args.threads,
             "keep_sfm_workspace": args.keep_sfm,
+            "sfm_image_max_side": args.sfm_max_side,
         }
     )
     summary = run_calibrate(WorkDir.at(args.work), config, progress=not args.quiet)

@@ -3,9 +3,10 @@
 SfM recovers the rig (camera poses relative to each other) and one rig pose per turntable group, in a frame
 known only up to a similarity. The world frame of the conventions is fixed here (the gauge):
 
-1. Metric scale, rotation and origin come from a least-squares similarity (Umeyama) that maps the recovered
-   rig-frame camera centres onto the stage's nominal rig-frame camera centres (stage.yaml). This defines the
-   *stage rig frame* of the estimate; lights are locked to it at their nominal rig-frame positions.
+1. Metric scale, rotation and origin come from the similarity that best puts the recovered rig onto the stage's
+   nominal rig (stage.yaml): the Umeyama fit of the camera centres, refined (`fit_gauge`) to also match the
+   nominal camera orientations given the mounting tolerances (centres alone pin the rotation poorly). This
+   defines the *stage rig frame* of the estimate; lights are locked to it at their nominal rig-frame positions.
 2. The world frame is the stage rig frame of the reference group (the first group) placed at that group's
    nominal yaw about the estimated turntable axis; for a yaw-0 reference group (every preset) the world frame
    simply *is* the reference group's rig frame (origin at the sphere centre, +z the nominal up).
@@ -75,6 +76,56 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> Simila
         raise LightstageError("similarity fit: source points are all identical")
     scale = float(np.trace(np.diag(D) @ S) / var_s) if with_scale else 1.0
     return Similarity(scale, R, mu_d - scale * R @ mu_s)
+
+
+def fit_gauge(
+    src: np.ndarray,
+    dst: np.ndarray,
+    src_rot: np.ndarray | None = None,
+    dst_rot: np.ndarray | None = None,
+    position_sigma: float = 0.003,
+    rotation_sigma_deg: float = 0.2,
+    src_extra: np.ndarray | None = None,
+    dst_extra: np.ndarray | None = None,
+    extra_sigma: float | np.ndarray = 0.003,
+) -> Similarity:
+    """Maximum-likelihood similarity x -> s R x + t putting a recovered rig onto the nominal (drawn) one.
+
+    Points `src` (N, 3) should land on `dst` (position error `position_sigma` per axis, metres after mapping);
+    world-to-camera rotations `src_rot` (N, 3, 3), which become src_rot R^T, should match `dst_rot` (per-axis
+    error `rotation_sigma_deg`); optional extra points (e.g. observed lights) likewise with `extra_sigma`.
+    Starts from the Umeyama fit of the points; with positions alone it is that fit.
+    """
+    from scipy.optimize import least_squares
+
+    S0 = umeyama(src, dst)
+    use_rot = src_rot is not None and dst_rot is not None and rotation_sigma_deg > 0
+    use_extra = src_extra is not None and dst_extra is not None and len(src_extra) > 0
+    if not use_rot and not use_extra:
+        return S0
+    src, dst = np.asarray(src, float), np.asarray(dst, float)
+    sig_r = np.deg2rad(rotation_sigma_deg)
+    if use_extra:
+        src_extra, dst_extra = np.asarray(src_extra, float), np.asarray(dst_extra, float)
+        w_extra = 1.0 / np.broadcast_to(np.asarray(extra_sigma, float), (len(src_extra),))[:, None]
+
+    def similarity(x: np.ndarray) -> Similarity:
+        return Similarity(
+            S0.scale * np.exp(x[3]), Rotation.from_rotvec(x[:3]).as_matrix() @ S0.R, S0.t + x[4:]
+        )
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        S = similarity(x)
+        out = [((S.apply(src) - dst) / position_sigma).ravel()]
+        if use_rot:
+            err = Rotation.from_matrix(np.asarray(src_rot) @ S.R.T @ np.transpose(dst_rot, (0, 2, 1)))
+            out.append(err.as_rotvec().ravel() / sig_r)
+        if use_extra:
+            out.append(((S.apply(src_extra) - dst_extra) * w_extra).ravel())
+        return np.concatenate(out)
+
+    sol = least_squares(residuals, np.zeros(7), x_scale=np.r_[np.full(3, 1e-3), 1e-3, np.full(3, 1e-3)])
+    return similarity(sol.x)
 
 
 @dataclass(frozen=True)
@@ -183,19 +234,34 @@ def register_rig(
     group_order: list[str],
     reference_yaw_deg: float = 0.0,
     nominal_direction: np.ndarray = (0.0, 0.0, 1.0),
+    nominal_rotations: dict[str, np.ndarray] | None = None,
+    position_sigma_m: float = 0.003,
+    rotation_sigma_deg: float = 0.0,
+    extra_points: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> Registration:
     """Register a recovered rig (SfM frame, arbitrary similarity) to the world frame (see the module doc).
 
     `sensor_from_rig[c]` = (R, t) of camera c in the recovered rig frame; `rig_from_world[g]` = (R, t) of the
     recovered rig for group g; `nominal_centres[c]` = nominal rig-frame camera centre (metres).
-    `group_order[0]` is the reference group.
+    `group_order[0]` is the reference group. With `nominal_rotations` (camera id -> nominal rig-frame
+    world-to-camera rotation) and `rotation_sigma_deg` > 0 the gauge also fits the camera orientations
+    (`fit_gauge`); `extra_points` = (recovered rig-frame points, nominal positions, sigmas in metres) adds
+    further nominal points (observed lights).
     """
     cams = [c for c in nominal_centres if c in sensor_from_rig]
     if len(cams) < 3:
         raise LightstageError(f"registration needs >= 3 recovered cameras, got {len(cams)}")
     src = np.stack([-sensor_from_rig[c][0].T @ sensor_from_rig[c][1] for c in cams])
     dst = np.stack([np.asarray(nominal_centres[c], float) for c in cams])
-    S_rig = umeyama(src, dst)  # recovered rig -> stage rig
+    src_rot = dst_rot = None
+    if nominal_rotations is not None and rotation_sigma_deg > 0:
+        src_rot = np.stack([sensor_from_rig[c][0] for c in cams])
+        dst_rot = np.stack([np.asarray(nominal_rotations[c], float) for c in cams])
+    ex_src, ex_dst, ex_sig = extra_points if extra_points is not None else (None, None, 1.0)
+    # recovered rig -> stage rig
+    S_rig = fit_gauge(
+        src, dst, src_rot, dst_rot, position_sigma_m, rotation_sigma_deg, ex_src, ex_dst, ex_sig
+    )
     rig_rms = float(np.sqrt(((S_rig.apply(src) - dst) ** 2).sum(1).mean()))
     S_rig_inv = S_rig.inverse()
     # Stage-rig-to-camera in metres.

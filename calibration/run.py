@@ -2,8 +2,9 @@
 
 Methods (explicit, never a silent fallback):
 - `nominal`: cameras, lights, axis and yaws straight from stage.yaml.
-- `sfm`: pycolmap on the preprocess stage's well-lit images + masks (`sfm.py`), registered to the world frame
-  with the nominal rig as gauge (`register.py`); fails with a LightstageError naming the views when views stay
+- `sfm`: pycolmap (`sfm.py`) on the preprocess stage's well-lit images + masks, or on sharper images built from
+  a few raw frames when the raw resolution allows (`sfm_images.py`), registered to the world frame with the
+  nominal rig (centres and orientations) as gauge (`register.py`); fails with a LightstageError naming the views when views stay
   unregistered or residuals exceed the thresholds.
 Outputs: calibration.json (the record every later stage reads), colmap/ (sparse model), transforms.json
 (nerfstudio, OpenGL), layout.png; the report holds SfM statistics and, when the capture has ground truth,
@@ -45,7 +46,20 @@ class CalibrateConfig:
     min_registered_fraction: float = 1.0  # SfM fails when fewer views register (1.0: every view)
     max_rig_fit_rms_mm: float = 50.0  # recovered rig vs nominal camera centres; larger = wrong stage.yaml
     max_features: int = 8192
-    mask_erode_px: int = 2
+    mask_erode_px: int = 2  # feature-mask erosion in processed pixels (scaled to the SfM images)
+    sfm_image_max_side: int = 2048  # SfM images at raw / f, the largest with long side <= this (0: processed)
+    sfm_image_lights: int = 8  # raw frames (evenly spread lights) averaged per view for those images
+    sfm_image_trim: bool = False  # leave each pixel's brightest light out of that mean (specular highlights)
+    sift_first_octave: int = -1  # -1: SIFT upsamples once (more, finer features; 0 halved the accuracy)
+    max_pair_angle_deg: float = 90.0  # match views whose nominal camera centres are within this angle
+    # World-frame gauge: the similarity that best fits the nominal rig's camera centres AND orientations, given
+    # the stage's mounting tolerances (per axis); 0 deg: centres only (Umeyama). See docs/calibration.md.
+    gauge_position_sigma_mm: float = 3.0
+    gauge_rotation_sigma_deg: float = 0.2
+    # Lights seen directly by cameras (clipped bulbs in the processed frames) are moved onto their rays /
+    # triangulated, with the nominal position as prior (per-axis sigma); the others keep nominal positions.
+    observe_bulbs: bool = True
+    light_prior_sigma_mm: float = 3.0
     peak_threshold: float = 0.004
     ransac_max_error_px: float = 2.0
     num_threads: int = 2
@@ -82,6 +96,15 @@ class CalibrateConfig:
         if cfg.method not in METHODS:
             raise LightstageError(
                 f"calibration config: method: expected one of {METHODS}, got {cfg.method!r}"
+            )
+        if (
+            cfg.gauge_position_sigma_mm <= 0
+            or cfg.light_prior_sigma_mm <= 0
+            or cfg.gauge_rotation_sigma_deg < 0
+        ):
+            raise LightstageError(
+                "calibration config: gauge_position_sigma_mm and light_prior_sigma_mm must be > 0, "
+                "gauge_rotation_sigma_deg >= 0"
             )
         if not 0.0 < cfg.min_registered_fraction <= 1.0:
             raise LightstageError("calibration config: min_registered_fraction: must be in (0, 1]")
@@ -131,10 +154,11 @@ def _light_floor(capture: Capture, truth: Calibration) -> Calibration:
 
 
 def _sfm_calibration(
-    work: WorkDir, capture: Capture, config: CalibrateConfig, intr: dict, log
+    work: WorkDir, capture: Capture, config: CalibrateConfig, intr: dict, log, progress: bool = False
 ) -> tuple[Calibration, dict[str, Any], Any]:
     from lightstage.calibration.register import register_rig
     from lightstage.calibration.sfm import SfmOptions, run_sfm
+    from lightstage.calibration.sfm_images import build_sfm_images
 
     stage = capture.stage
     views = {}
@@ -154,11 +178,25 @@ def _sfm_calibration(
         raise LightstageError(
             f"stage resolution {stage.width}x{stage.height} is not divisible by {DOWNSCALE}"
         )
-    w, h = stage.width // DOWNSCALE, stage.height // DOWNSCALE
-    proc_intr = {c: (scale_intrinsics(K, 1.0 / DOWNSCALE), dist, w, h) for c, (K, dist) in intr.items()}
+    images = build_sfm_images(
+        capture,
+        views,
+        work.calibration_dir / "sfm_images",
+        config.sfm_image_max_side,
+        config.sfm_image_lights,
+        trim_brightest=config.sfm_image_trim,
+        progress=progress,
+    )
+    f, w, h = images.factor, images.width, images.height
+    log(
+        f"SfM images: {w}x{h} (raw / {f}){f' from {len(images.lights)} raw frames per view' if images.lights else ''}"
+    )
+    sfm_intr = {c: (scale_intrinsics(K, 1.0 / f), dist, w, h) for c, (K, dist) in intr.items()}
     options = SfmOptions(
         max_features=config.max_features,
-        mask_erode_px=config.mask_erode_px,
+        mask_erode_px=int(round(config.mask_erode_px * DOWNSCALE / f)),
+        first_octave=config.sift_first_octave,
+        max_pair_angle_deg=config.max_pair_angle_deg,
         peak_threshold=config.peak_threshold,
         ransac_max_error_px=config.ransac_max_error_px,
         num_threads=config.num_threads,
@@ -168,8 +206,18 @@ def _sfm_calibration(
     initial = {
         v: (stage.view_camera(v.group, v.camera).R, stage.view_camera(v.group, v.camera).t) for v in views
     }
-    result = run_sfm(views, proc_intr, stage.camera_ids, sfm_dir, options, log=log, initial_poses=initial)
+    result = run_sfm(
+        images.views, sfm_intr, stage.camera_ids, sfm_dir, options, log=log, initial_poses=initial
+    )
     stats = dict(result.stats)
+    stats["images"] = {
+        "factor": f,
+        "size": [w, h],
+        "raw_lights_averaged": images.lights,
+        "exposure": images.exposure,
+        "seconds": round(images.seconds, 2),
+        "skipped_frames": images.skipped,
+    }
     n_needed = int(np.ceil(config.min_registered_fraction * len(views)))
     if len(result.registered) < n_needed:
         raise LightstageError(
@@ -190,6 +238,9 @@ def _sfm_calibration(
         stage.group_names,
         reference_yaw_deg=stage.groups[0].yaw_deg,
         nominal_direction=np.asarray(stage.axis.direction),
+        nominal_rotations={c.id: c.R for c in stage.cameras},
+        position_sigma_m=config.gauge_position_sigma_mm / 1000.0,
+        rotation_sigma_deg=config.gauge_rotation_sigma_deg,
     )
     if reg.rig_fit_rms_m * 1000.0 > config.max_rig_fit_rms_mm:
         raise LightstageError(
@@ -204,6 +255,31 @@ def _sfm_calibration(
             np.asarray(K, float), R, t, stage.width, stage.height, np.asarray(dist, float)
         )
     p_rig = stage.light_positions_rig()
+    if config.observe_bulbs:
+        from lightstage.calibration.bulbs import observe_lights
+
+        bulbs = observe_lights(
+            work,
+            capture,
+            {c: (T.R, T.t) for c, T in reg.cam_from_rig.items()},
+            p_rig,
+            prior_sigma_m=config.light_prior_sigma_mm / 1000.0,
+        )
+        p_rig = bulbs.positions
+        stats["lights"] = {
+            "num_lights": len(stage.lights),
+            "num_observed": len(bulbs.cameras_per_light),
+            "num_triangulated": sum(len(c) >= 2 for c in bulbs.cameras_per_light.values()),
+            "frames_read": bulbs.frames_read,
+            "observed": {
+                str(i): {"cameras": cams, "shift_from_nominal_mm": round(bulbs.shift_mm[i], 3)}
+                for i, cams in bulbs.cameras_per_light.items()
+            },
+        }
+        log(
+            f"lights: {len(bulbs.cameras_per_light)}/{len(stage.lights)} seen directly by a camera "
+            f"({stats['lights']['num_triangulated']} by two or more); the others at nominal rig positions"
+        )
     calib = Calibration(
         method="sfm",
         views=calib_views,
@@ -219,7 +295,8 @@ def _sfm_calibration(
             g: 1000.0 * x for g, x in reg.turntable.translation_misfit_m.items()
         },
         "gauge": "world = stage rig frame of group "
-        f"{stage.group_names[0]} (Umeyama of recovered rig camera centres onto the nominal ones), "
+        f"{stage.group_names[0]} (similarity fitting the recovered rig camera centres and orientations to the "
+        f"nominal ones, sigma {config.gauge_position_sigma_mm} mm / {config.gauge_rotation_sigma_deg} deg), "
         "placed at that group's nominal yaw about the fitted axis",
     }
     points = colors = None
@@ -282,7 +359,7 @@ def run_calibrate(
             calib = nominal_calibration(stage, intr if config.intrinsics else None)
             stats: dict[str, Any] = {"num_views": len(calib.views), "num_registered": len(calib.views)}
         else:
-            calib, stats, (points, colors) = _sfm_calibration(work, capture, config, intr, log)
+            calib, stats, (points, colors) = _sfm_calibration(work, capture, config, intr, log, progress)
         report["sfm" if config.method == "sfm" else "nominal"] = stats
         calib.save(work.calibration)
         write_colmap_model(calib, work.calibration_dir / "colmap", points, colors)
@@ -303,6 +380,7 @@ def run_calibrate(
             import shutil
 
             shutil.rmtree(work.calibration_dir / "sfm", ignore_errors=True)
+            shutil.rmtree(work.calibration_dir / "sfm_images", ignore_errors=True)
     seconds = time.perf_counter() - t0
     summary = {
         "method": config.method,

@@ -37,13 +37,14 @@ class SfmOptions:
     min_num_matches: int = 15
     num_threads: int = 2
     seed: int = 0
-    final_ba_iterations: int = 200
+    final_ba_iterations: int = 50
     use_rig: bool = True
     min_points_per_view: int = 15
     init: str = (
         "nominal"  # "nominal": triangulate from the nominal rig, then refine; "incremental": COLMAP mapper
     )
-    refine_rounds: int = 4
+    refine_rounds: int = 3
+    round_ba_iterations: int = 15  # bundle-adjustment iterations per triangulation round (the last: final_*)
     initial_max_reproj_px: float = 10.0  # triangulation/filter threshold of the first round (nominal poses)
     final_max_reproj_px: float = 2.0  # ... of the last round
     init_min_num_inliers: int = 30
@@ -51,6 +52,9 @@ class SfmOptions:
     init_min_tri_angle_deg: float = 8.0
     domain_size_pooling: bool = False
     min_num_inliers: int = 12  # two-view verification
+    # With initial poses, match only view pairs whose camera centres are within this angle seen from the world
+    # origin (on the simulator almost no verified matches span more than 90 deg); 0 or >= 180: exhaustive.
+    max_pair_angle_deg: float = 90.0
     verbose: bool = False
 
 
@@ -64,6 +68,23 @@ class SfmResult:
     unregistered: list[ViewId]
     stats: dict = field(default_factory=dict)
     reconstruction: object = None  # pycolmap.Reconstruction
+
+
+def view_pairs(
+    poses: dict[ViewId, tuple[np.ndarray, np.ndarray]], views: list[ViewId], max_angle_deg: float
+) -> list[tuple[ViewId, ViewId]]:
+    """Pairs of views whose camera centres (from `poses`, world-to-camera) are within `max_angle_deg` of each
+    other as seen from the world origin (the object): the pairs worth matching on a turntable stage."""
+    centres = np.stack([-np.asarray(poses[v][0]).T @ np.asarray(poses[v][1]) for v in views])
+    dirs = centres / np.linalg.norm(centres, axis=1, keepdims=True)
+    cos = dirs @ dirs.T
+    limit = np.cos(np.deg2rad(max_angle_deg))
+    return [
+        (views[i], views[j])
+        for i in range(len(views))
+        for j in range(i + 1, len(views))
+        if cos[i, j] >= limit
+    ]
 
 
 def _image_name(view: ViewId) -> str:
@@ -172,7 +193,7 @@ def run_sfm(
             cam = db.read_camera(camera_of[cid])
             if cam.width != w or cam.height != h:
                 raise LightstageError(
-                    f"SfM: images of camera {cid} are {cam.width}x{cam.height}, expected {w}x{h} (raw / 4)"
+                    f"SfM: images of camera {cid} are {cam.width}x{cam.height}, expected {w}x{h}"
                 )
             params = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
             if model == "OPENCV":
@@ -193,9 +214,25 @@ def run_sfm(
     verification.ransac.max_error = options.ransac_max_error_px
     verification.detect_watermark = False
     verification.min_num_inliers = options.min_num_inliers
-    pycolmap.match_exhaustive(
-        db_path, matching_options=matching, verification_options=verification, device=pycolmap.Device.cpu
-    )
+    pairs = None
+    if initial_poses is not None and 0 < options.max_pair_angle_deg < 180:
+        pairs = view_pairs(initial_poses, sorted(views), options.max_pair_angle_deg)
+    if pairs is None:
+        pycolmap.match_exhaustive(
+            db_path, matching_options=matching, verification_options=verification, device=pycolmap.Device.cpu
+        )
+    else:
+        pair_file = work_dir / "pairs.txt"
+        pair_file.write_text("".join(f"{_image_name(a)} {_image_name(b)}\n" for a, b in pairs))
+        pairing = pycolmap.ImportedPairingOptions()
+        pairing.match_list_path = str(pair_file)
+        pycolmap.match_image_pairs(
+            db_path,
+            matching_options=matching,
+            pairing_options=pairing,
+            verification_options=verification,
+            device=pycolmap.Device.cpu,
+        )
     t_match = time.perf_counter() - t0 - t_extract
 
     mapping = pycolmap.IncrementalPipelineOptions()
@@ -271,6 +308,7 @@ def run_sfm(
     track_lengths = np.array([p.track.length() for p in rec.points3D.values()]) if rec.num_points3D() else []
     stats = {
         "num_views": len(views),
+        "num_pairs_matched": len(pairs) if pairs is not None else len(views) * (len(views) - 1) // 2,
         "num_registered": len(registered),
         "num_observed": len(observed),
         "min_points_per_view": options.min_points_per_view,
@@ -438,7 +476,9 @@ def _refine_from_initial(
         )
         if rec.num_points3D() == 0:
             return rec
-        pycolmap.bundle_adjustment(rec, _ba_options(options, robust=True, iterations=100))
+        pycolmap.bundle_adjustment(
+            rec, _ba_options(options, robust=True, iterations=options.round_ba_iterations)
+        )
     # The last round is robust too: plain least squares let outlier tracks pull the weakly constrained rig.
     pycolmap.bundle_adjustment(rec, _ba_options(options, robust=True, iterations=options.final_ba_iterations))
     return rec

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from lightstage.calibration.register import Similarity, fit_turntable, register_rig, umeyama
+from lightstage.calibration.register import Similarity, fit_gauge, fit_turntable, register_rig, umeyama
 from lightstage.cameras import camera_center
 from lightstage.capture.presets import make_stage
 from lightstage.rig import TurntableAxis, camera_pose_in_world, group_transform
@@ -47,8 +47,8 @@ def test_umeyama_recovers_similarity():
     np.testing.assert_allclose(S.inverse().apply(S.apply(x)), x, atol=1e-12)
 
 
-@pytest.mark.parametrize("seed", [1, 2, 3])
-def test_registration_recovers_axis_yaws_scale_exactly(seed):
+@pytest.mark.parametrize("seed,rotation_sigma_deg", [(1, 0.0), (2, 0.0), (3, 0.2)])
+def test_registration_recovers_axis_yaws_scale_exactly(seed, rotation_sigma_deg):
     rng = np.random.default_rng(seed)
     stage = make_stage("t", num_cameras=8, num_lights=12, width=512, height=340)
     direction = np.array([0.02, -0.015, 1.0])
@@ -60,7 +60,14 @@ def test_registration_recovers_axis_yaws_scale_exactly(seed):
     sim = _random_similarity(rng)
     sensor_from_rig, rig_from_world, world_pose = _synthetic_sfm(stage, axis, yaws, sim)
     nominal = {c.id: camera_center(c.R, c.t) for c in stage.cameras}
-    reg = register_rig(sensor_from_rig, rig_from_world, nominal, stage.group_names)
+    reg = register_rig(
+        sensor_from_rig,
+        rig_from_world,
+        nominal,
+        stage.group_names,
+        nominal_rotations={c.id: c.R for c in stage.cameras},
+        rotation_sigma_deg=rotation_sigma_deg,
+    )
     assert reg.rig_similarity.scale == pytest.approx(1.0 / sim.scale, rel=1e-9)
     assert reg.rig_fit_rms_m < 1e-9
     np.testing.assert_allclose(reg.turntable.axis.direction, direction, atol=1e-9)
@@ -88,3 +95,33 @@ def test_fit_turntable_handles_yaws_past_180_degrees():
     for g in motions:
         assert fit.yaws_deg[g] == pytest.approx(float(g), abs=1e-9)
     np.testing.assert_allclose(fit.axis.point, axis.point, atol=1e-12)
+
+
+def test_gauge_with_orientations_beats_centres_alone():
+    """Mounting errors (3 mm, ~0.2 deg per axis) on a 20-camera rig: fitting the nominal orientations as well as
+    the centres pins the world frame's rotation better than Umeyama on the centres, on average."""
+    stage = make_stage("t", num_cameras=20, num_lights=4, width=512, height=340, camera_distance=1.1)
+    nominal_c = np.stack([camera_center(c.R, c.t) for c in stage.cameras])
+    nominal_R = np.stack([c.R for c in stage.cameras])
+    err_pts, err_ml = [], []
+    for seed in range(12):
+        rng = np.random.default_rng(seed)
+        true_c = nominal_c + rng.normal(0, 0.003, nominal_c.shape)
+        true_R = np.stack(
+            [Rotation.from_rotvec(rng.normal(0, np.deg2rad(0.2), 3)).as_matrix() @ R for R in nominal_R]
+        )
+        S = _random_similarity(rng)  # recovered frame = S(true frame)
+        src_c = S.apply(true_c)
+        src_R = true_R @ S.R.T
+        for fit, errs in (
+            (umeyama(src_c, nominal_c), err_pts),
+            (fit_gauge(src_c, nominal_c, src_R, nominal_R), err_ml),
+        ):
+            # Composite fit(S(x)) should be the identity; its rotation angle is the gauge error.
+            errs.append(np.rad2deg(Rotation.from_matrix(fit.R @ S.R).magnitude()))
+    assert np.mean(err_ml) < 0.5 * np.mean(err_pts)
+    # Exact data: the fit is the exact inverse similarity.
+    S = _random_similarity(np.random.default_rng(99))
+    est = fit_gauge(S.apply(nominal_c), nominal_c, nominal_R @ S.R.T, nominal_R)
+    assert est.scale == pytest.approx(1.0 / S.scale, rel=1e-9)
+    np.testing.assert_allclose(est.R, S.R.T, atol=1e-9)

@@ -161,6 +161,83 @@ def test_missing_preprocess_outputs_are_named(tiny_work: WorkDir, tmp_path: Path
         run_calibrate(work, CalibrateConfig(method="sfm"), progress=False)
 
 
+def test_sfm_image_factor_and_light_spread():
+    from lightstage.calibration.sfm_images import sfm_image_factor, spread_lights
+
+    assert sfm_image_factor(768, 512, 2048) == 1  # small: raw
+    assert sfm_image_factor(8192, 5464, 2048) == DOWNSCALE  # paper: the processed images
+    assert sfm_image_factor(4096, 2732, 2048) == 2
+    assert sfm_image_factor(768, 512, 0) == DOWNSCALE  # 0: always the processed images
+    assert sfm_image_factor(770, 514, 500) == 2  # 3 does not divide 770
+    assert spread_lights(list(range(32)), 4) == [0, 10, 21, 31]
+    assert spread_lights([5, 1, 3], 8) == [1, 3, 5]
+
+
+def test_view_pairs_keep_nearby_views(tiny_capture: Path):
+    from lightstage.calibration.sfm import view_pairs
+
+    cap = open_capture(tiny_capture)
+    views = sorted(cap.views())
+    poses = {
+        v: (cap.stage.view_camera(v.group, v.camera).R, cap.stage.view_camera(v.group, v.camera).t)
+        for v in views
+    }
+    pairs = view_pairs(poses, views, 90.0)
+    n = len(views)
+    assert 0 < len(pairs) < n * (n - 1) // 2
+    assert len(view_pairs(poses, views, 180.0)) == n * (n - 1) // 2
+    same_group = [(a, b) for a, b in pairs if a.group == b.group]
+    assert (
+        len(same_group) == len(cap.stage.groups) * len(cap.stage.cameras) * (len(cap.stage.cameras) - 1) // 2
+    )
+
+    # Kept exactly the pairs within 90 deg as seen from the origin: cameras low on opposite sides are not paired.
+    def centre(v):
+        c = cap.stage.view_camera(v.group, v.camera)
+        return -c.R.T @ c.t
+
+    kept = set(pairs)
+    for i, a in enumerate(views):
+        for b in views[i + 1 :]:
+            ca, cb = centre(a), centre(b)
+            assert ((a, b) in kept) == (ca @ cb >= 0.0)
+
+
+def test_sfm_images_from_raw_frames(tiny_capture: Path, tmp_path: Path):
+    """Raw-resolution SfM images: mean of a few raw frames, one exposure, masks upsampled to match."""
+    from lightstage.calibration.sfm_images import build_sfm_images
+
+    cap = open_capture(tiny_capture)
+    work = WorkDir.at(tmp_path / "w")
+    w, h = cap.stage.width // DOWNSCALE, cap.stage.height // DOWNSCALE
+    views = {}
+    for v in cap.views():
+        work.view_dir(v).mkdir(parents=True)
+        m = cv2.imread(
+            str(tiny_capture / "ground_truth" / "masks" / v.group / f"{v.camera}.png"), cv2.IMREAD_GRAYSCALE
+        )
+        cv2.imwrite(str(work.mask(v)), cv2.resize(m, (w, h), interpolation=cv2.INTER_AREA))
+        cv2.imwrite(str(work.wellit(v)), np.zeros((h, w, 3), np.uint8))
+        views[v] = (work.wellit(v), work.mask(v))
+    imgs = build_sfm_images(cap, views, tmp_path / "sfm_images", max_side=2048, num_lights=3)
+    assert imgs.factor == 1 and (imgs.width, imgs.height) == (cap.stage.width, cap.stage.height)
+    assert len(imgs.lights) == 3 and imgs.exposure > 0
+    assert set(imgs.views) == set(views)
+    fg_levels = []
+    for img_path, mask_path in imgs.views.values():
+        img = cv2.imread(str(img_path), cv2.IMREAD_UNCHANGED)
+        m = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
+        assert img.shape == (cap.stage.height, cap.stage.width, 3) and img.dtype == np.uint8
+        assert m.shape == img.shape[:2] and set(np.unique(m)) <= {0, 255}
+        if m.any():
+            fg_levels.append(np.percentile(img[m > 0], 99))
+    # One exposure for the capture maps a high foreground percentile near white.
+    assert 150 < np.median(fg_levels) <= 255
+    # max_side 0: the preprocess images are used unchanged, nothing is read from the raw capture.
+    same = build_sfm_images(cap, views, tmp_path / "unused", max_side=0, num_lights=3)
+    assert same.factor == DOWNSCALE and same.views == views and not (tmp_path / "unused").exists()
+
+
 def test_colmap_image_names_are_rig_folders():
     assert colmap_image_name("040", "cam03") == "cam03/040.png"
 
@@ -196,7 +273,7 @@ def small_sfm(tmp_path_factory: pytest.TempPathFactory) -> tuple[WorkDir, dict, 
 @pytest.mark.slow
 @pytest.mark.timeout(
     1800
-)  # simulate + preprocess + SfM: ~5 min on 2 idle cores, the fixture runs in this test
+)  # simulate + preprocess + SfM: ~9 min on one shared core (2026-11-23); the fixture runs in this test
 def test_sfm_small_registers_every_view_and_exports_match(small_sfm):
     import pycolmap
 
@@ -227,9 +304,24 @@ def test_sfm_small_registers_every_view_and_exports_match(small_sfm):
 
 @pytest.mark.slow
 @pytest.mark.timeout(1800)
+def test_sfm_small_mean_camera_errors_within_targets(small_sfm):
+    """What is reached reliably (docs/calibration.md, Status): the issue 6 camera targets on average over the 180
+    views, every group's yaw within target."""
+    work, _, _ = small_sfm
+    gt = json.loads(work.report("calibration").read_text())["ground_truth"]
+    assert gt["num_views_compared"] == 180
+    assert gt["raw"]["rotation_error_deg"]["mean"] <= 0.1
+    assert gt["raw"]["camera_centre_error_mm"]["mean"] <= 2.0
+    assert gt["yaw_error_deg"]["max"] <= 0.05
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
 @pytest.mark.xfail(
-    reason="issue 6 accuracy targets not reached yet: measured 0.26-0.30 deg / 4.9-5.8 mm raw mean, yaw max "
-    "0.11-0.23 deg (see docs/calibration.md, Status)",
+    reason="issue 6 accuracy targets not all reached for every view: measured on this subset (6 lights) rotation "
+    "0.054-0.064 deg mean / 0.12-0.14 deg max, centre 1.4-1.6 / 3.0-3.5 mm, yaw max 0.016-0.037 deg, lights "
+    "5.7-5.8 / 8.2-8.6 mm (the light floor of nominal rig-frame positions is 5.8 / 7.3 mm here; see "
+    "docs/calibration.md, Status)",
     strict=False,
 )
 def test_sfm_small_meets_accuracy_targets(small_sfm):
