@@ -474,9 +474,11 @@ def _map(fn: Any, items: list[Any], client: Any, workers: int, progress: bool, d
 
     if workers <= 1 or len(items) <= 1:
         return [fn(x) for x in tqdm(items, desc=desc, disable=not progress)]
+    import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
-    with ProcessPoolExecutor(max_workers=workers) as pool:
+    # spawn, not fork: forking a process that already runs threads (torch, dask, OpenMP) can deadlock the child
+    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
         return list(tqdm(pool.map(fn, items), total=len(items), desc=desc, disable=not progress))
 
 
