@@ -49,7 +49,7 @@ class CalibrateConfig:
     mask_erode_px: int = 2  # feature-mask erosion in processed pixels (scaled to the SfM images)
     sfm_image_max_side: int = 2048  # SfM images at raw / f, the largest with long side <= this (0: processed)
     sfm_image_lights: int = 8  # raw frames (evenly spread lights) averaged per view for those images
-    sfm_image_trim: bool = False  # leave each pixel's brightest light out of that mean (specular highlights)
+    sfm_image_trim: bool = True  # leave each pixel's brightest light out of that mean (specular highlights)
     sift_first_octave: int = -1  # -1: SIFT upsamples once (more, finer features; 0 halved the accuracy)
     max_pair_angle_deg: float = 90.0  # match views whose nominal camera centres are within this angle
     # World-frame gauge: the similarity that best fits the nominal rig's camera centres AND orientations, given

@@ -5,8 +5,9 @@ simulator's `small` capture, whose raw frames are 768x512). `sfm_image_factor` p
 `raw / f` (f an integer dividing the raw size, f <= DOWNSCALE) whose long side is within a cap; f = DOWNSCALE means
 the preprocess well-lit images are used as they are (no raw reads: the paper's 8192-px frames give 2048 px).
 Otherwise each view's image is the mean of a few raw frames (evenly spread lights, the same for every view:
-lights are locked to the rig, so the lighting seen by a camera is the same in every group), area-downscaled by
-f, tonemapped with lightstage's one tonemap and one exposure for the capture; its feature mask is the preprocess
+lights are locked to the rig, so the lighting seen by a camera is the same in every group), optionally leaving
+out each pixel's brightest frame (a specular highlight comes from one light and moves with the rig, not with the
+object), area-downscaled by f, tonemapped with lightstage's one tonemap and one exposure for the capture; its feature mask is the preprocess
 mask upsampled (nearest).
 """
 

@@ -136,7 +136,8 @@ def test_world_camera_pixel_round_trip(tiny_capture: Path):
 
 
 def test_sfm_failure_is_a_clear_error_naming_views(tiny_capture: Path, tmp_path: Path):
-    """Featureless images: SfM must fail loudly, naming views, and never fall back to nominal."""
+    """Featureless images: SfM must fail loudly, naming views, and never fall back to nominal. (SfM runs on the
+    preprocess images here, `sfm_image_max_side = 0`: by default it would build its own from the raw frames.)"""
     work = WorkDir.at(tmp_path / "w")
     cap = open_capture(tiny_capture)
     work.root.mkdir(parents=True)
@@ -147,7 +148,7 @@ def test_sfm_failure_is_a_clear_error_naming_views(tiny_capture: Path, tmp_path:
         cv2.imwrite(str(work.wellit(v)), np.full((h, w, 3), 90, np.uint8))
         cv2.imwrite(str(work.mask(v)), np.full((h, w), 255, np.uint8))
     with pytest.raises(LightstageError, match=r"SfM.*000/cam00"):
-        run_calibrate(work, CalibrateConfig(method="sfm"), progress=False)
+        run_calibrate(work, CalibrateConfig(method="sfm", sfm_image_max_side=0), progress=False)
     assert not work.calibration.exists()
     report = json.loads(work.report("calibration").read_text())
     assert report["status"] == "failed" and "SfM" in report["error"]
@@ -238,6 +239,24 @@ def test_sfm_images_from_raw_frames(tiny_capture: Path, tmp_path: Path):
     assert same.factor == DOWNSCALE and same.views == views and not (tmp_path / "unused").exists()
 
 
+def test_sfm_image_trim_leaves_out_the_brightest_frame(tiny_capture: Path):
+    from lightstage.calibration.sfm_images import _mean_image
+    from lightstage.capture.frames import read_exr
+
+    cap = open_capture(tiny_capture)
+    view = next(iter(cap.views()))
+    lights = [0, 4, 8]
+    frames = np.stack(
+        [read_exr(cap.frame_path(FrameId(view.group, view.camera, lt))).astype(np.float32) for lt in lights]
+    )
+    skipped: list[str] = []
+    plain = _mean_image(cap, view, lights, 1, skipped)
+    trimmed = _mean_image(cap, view, lights, 1, skipped, trim=True)
+    np.testing.assert_allclose(plain, frames.mean(0), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(trimmed, (frames.sum(0) - frames.max(0)) / 2, rtol=1e-5, atol=1e-6)
+    assert not skipped
+
+
 def test_colmap_image_names_are_rig_folders():
     assert colmap_image_name("040", "cam03") == "cam03/040.png"
 
@@ -304,13 +323,13 @@ def test_sfm_small_registers_every_view_and_exports_match(small_sfm):
 
 @pytest.mark.slow
 @pytest.mark.timeout(1800)
-def test_sfm_small_mean_camera_errors_within_targets(small_sfm):
-    """What is reached reliably (docs/calibration.md, Status): the issue 6 camera targets on average over the 180
-    views, every group's yaw within target."""
+def test_sfm_small_camera_errors_within_targets(small_sfm):
+    """What is reached (docs/calibration.md, Status): the issue 6 rotation and yaw targets for every view and
+    group, the camera-centre target on average over the 180 views."""
     work, _, _ = small_sfm
     gt = json.loads(work.report("calibration").read_text())["ground_truth"]
     assert gt["num_views_compared"] == 180
-    assert gt["raw"]["rotation_error_deg"]["mean"] <= 0.1
+    assert gt["raw"]["rotation_error_deg"]["max"] <= 0.1
     assert gt["raw"]["camera_centre_error_mm"]["mean"] <= 2.0
     assert gt["yaw_error_deg"]["max"] <= 0.05
 
@@ -318,10 +337,10 @@ def test_sfm_small_mean_camera_errors_within_targets(small_sfm):
 @pytest.mark.slow
 @pytest.mark.timeout(1800)
 @pytest.mark.xfail(
-    reason="issue 6 accuracy targets not all reached for every view: measured on this subset (6 lights) rotation "
-    "0.054-0.064 deg mean / 0.12-0.14 deg max, centre 1.4-1.6 / 3.0-3.5 mm, yaw max 0.016-0.037 deg, lights "
-    "5.7-5.8 / 8.2-8.6 mm (the light floor of nominal rig-frame positions is 5.8 / 7.3 mm here; see "
-    "docs/calibration.md, Status)",
+    reason="issue 6 centre-max and light targets not reached: measured on this subset (6 lights) centre 1.43 / 2.42 mm "
+    "mean / max (the gauge from the nominal stage alone has a 2.18 mm max floor on this seed), lights 5.74 / 8.09 mm "
+    "(floor of nominal rig-frame lights 5.82 / 7.31 mm; no bulb usable); rotation 0.045 / 0.061 deg and yaw "
+    "0.004 / 0.007 deg are within target (see docs/calibration.md, Status)",
     strict=False,
 )
 def test_sfm_small_meets_accuracy_targets(small_sfm):
