@@ -86,11 +86,13 @@ def observe_lights(
     prior_sigma_m: float = 0.003,
     pixel_sigma: float = 0.25,
     margin_px: float = 2.0,
+    intrinsics: dict[str, np.ndarray] | None = None,
 ) -> BulbEstimate:
     """Rig-frame light positions from the bulbs seen in the processed frames (see the module doc).
 
     `cam_from_rig`: camera id -> stage-rig-to-camera (R, t) in metres; `nominal_rig`: (L, 3) nominal positions.
-    Only frames where a light's nominal position projects inside a camera's image are read.
+    `intrinsics`: camera id -> raw-resolution K (default: stage.yaml's); distortion is ignored. Only frames
+    where a light's nominal position projects inside a camera's image are read.
     """
     from lightstage.preprocess.processed import read_processed
 
@@ -106,7 +108,7 @@ def observe_lights(
             if cam.id not in cam_from_rig:
                 continue
             R, t = cam_from_rig[cam.id]
-            K = cam.K.copy()
+            K = np.array(intrinsics.get(cam.id, cam.K) if intrinsics else cam.K, dtype=np.float64)
             K[:2] /= DOWNSCALE
             pc = R @ p0 + t
             if pc[2] <= 0:

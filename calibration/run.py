@@ -196,6 +196,10 @@ def _sfm_calibration(
         max_features=config.max_features,
         mask_erode_px=int(round(config.mask_erode_px * DOWNSCALE / f)),
         first_octave=config.sift_first_octave,
+        # The nominal poses are off by the same angle at any resolution: the first round's threshold scales
+        # with the image (10 px at the processed resolution, 40 px at raw for a 4x downscale).
+        initial_max_reproj_px=10.0 * DOWNSCALE / f,
+        refine_rounds=3 if f == DOWNSCALE else 4,
         max_pair_angle_deg=config.max_pair_angle_deg,
         peak_threshold=config.peak_threshold,
         ransac_max_error_px=config.ransac_max_error_px,
@@ -264,6 +268,7 @@ def _sfm_calibration(
             {c: (T.R, T.t) for c, T in reg.cam_from_rig.items()},
             p_rig,
             prior_sigma_m=config.light_prior_sigma_mm / 1000.0,
+            intrinsics={c: K for c, (K, _) in intr.items()},
         )
         p_rig = bulbs.positions
         stats["lights"] = {
