@@ -140,11 +140,35 @@ def run_sfm(
     rounds) instead of COLMAP's incremental registration, which needs more matches than small objects give.
     Raises LightstageError naming the views that could not be registered.
     """
-    import time
 
     import pycolmap
 
     pycolmap.set_random_seed(options.seed)
+    # COLMAP logs every matching block and solver retry through glog (thousands of lines per run): show only
+    # errors unless verbose; restored on return because the setting is process-wide.
+    log_level = pycolmap.logging.minloglevel
+    if not options.verbose:
+        pycolmap.logging.minloglevel = 2
+    try:
+        return _run_sfm(views, intrinsics, camera_order, work_dir, options, log, initial_poses)
+    finally:
+        pycolmap.logging.minloglevel = log_level
+
+
+def _run_sfm(
+    views: dict[ViewId, tuple[Path, Path]],
+    intrinsics: dict[str, tuple[np.ndarray, np.ndarray, int, int]],
+    camera_order: list[str],
+    work_dir: Path,
+    options: SfmOptions,
+    log,
+    initial_poses: dict[ViewId, tuple[np.ndarray, np.ndarray]] | None,
+) -> SfmResult:
+    """The body of `run_sfm` (logging level already set)."""
+    import time
+
+    import pycolmap
+
     t0 = time.perf_counter()
     if work_dir.exists():
         shutil.rmtree(work_dir)

@@ -135,7 +135,7 @@ def test_world_camera_pixel_round_trip(tiny_capture: Path):
     np.testing.assert_allclose(project(pts, raw.K, raw.R, raw.t), uv * DOWNSCALE, atol=1e-8)
 
 
-def test_sfm_failure_is_a_clear_error_naming_views(tiny_capture: Path, tmp_path: Path):
+def test_sfm_failure_is_a_clear_error_naming_views(tiny_capture: Path, tmp_path: Path, capfd):
     """Featureless images: SfM must fail loudly, naming views, and never fall back to nominal. (SfM runs on the
     preprocess images here, `sfm_image_max_side = 0`: by default it would build its own from the raw frames.)"""
     work = WorkDir.at(tmp_path / "w")
@@ -152,6 +152,7 @@ def test_sfm_failure_is_a_clear_error_naming_views(tiny_capture: Path, tmp_path:
     assert not work.calibration.exists()
     report = json.loads(work.report("calibration").read_text())
     assert report["status"] == "failed" and "SfM" in report["error"]
+    assert "feature_extraction" not in capfd.readouterr().err  # COLMAP's glog chatter is silenced
 
 
 def test_missing_preprocess_outputs_are_named(tiny_work: WorkDir, tmp_path: Path):
