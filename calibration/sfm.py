@@ -404,18 +404,9 @@ def _incremental(db_path, image_dir, sparse_dir, views, cams_present, mapping, o
             pycolmap.apply_rig_config([rig_config], db, rec)
 
     if options.final_ba_iterations > 0:
-        ba = pycolmap.BundleAdjustmentOptions()
-        ba.refine_focal_length = False
-        ba.refine_principal_point = False
-        ba.refine_extra_params = False
-        ba.refine_sensor_from_rig = options.refine_rig
-        ba.print_summary = options.verbose
-        ba.ceres.solver_options.max_num_iterations = options.final_ba_iterations
-        ba.ceres.solver_options.function_tolerance = 1e-12
-        ba.ceres.solver_options.gradient_tolerance = 1e-12
-        ba.ceres.solver_options.parameter_tolerance = 1e-12
-        ba.ceres.solver_options.num_threads = options.num_threads
-        pycolmap.bundle_adjustment(rec, ba)
+        pycolmap.bundle_adjustment(
+            rec, _ba_options(options, robust=False, iterations=options.final_ba_iterations)
+        )
     t_ba = time.perf_counter() - t_start - t_map
 
     return rec, recs, t_map, t_ba
