@@ -86,6 +86,23 @@ def pixel_rays(uv: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray) -> t
     return origins, d_world
 
 
+def undistort_pixels(uv: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Continuous pixel coordinates (N, 2) of a distorted OpenCV camera -> where the ideal pinhole camera K sees
+    the same rays (unchanged when all distortion coefficients are zero)."""
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    if not np.any(np.asarray(dist) != 0):
+        return uv
+    import cv2
+
+    return cv2.undistortPoints(uv[:, None, :], K, np.asarray(dist, np.float64), P=K)[:, 0]
+
+
+def camera_rays(camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
+    """World rays (H*W, 3) through every pixel centre of `camera` in raster order, distortion undone."""
+    uv = undistort_pixels(pixel_centers(camera.width, camera.height), camera.K, camera.dist)
+    return pixel_rays(uv, camera.K, camera.R, camera.t)
+
+
 def opencv_to_opengl_c2w(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """4x4 camera-to-world matrix in the OpenGL/nerfstudio convention from an OpenCV world-to-camera pose."""
     c2w = np.eye(4)

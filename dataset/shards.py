@@ -98,14 +98,9 @@ def view_rays(
 ) -> tuple[np.ndarray, np.ndarray]:
     """float32 world (origins, directions) through the centres of integer pixels (N, 2) = (i, j) of a
     processed-resolution camera; distorted cameras are undistorted first (OpenCV)."""
-    from lightstage.cameras import pixel_rays
+    from lightstage.cameras import pixel_rays, undistort_pixels
 
-    uv = pixels.astype(np.float64) + 0.5
-    if np.any(np.asarray(dist) != 0):
-        import cv2
-
-        uv = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, np.asarray(dist, np.float64), P=K).reshape(-1, 2)
-    o, d = pixel_rays(uv, K, R, t)
+    o, d = pixel_rays(undistort_pixels(pixels.astype(np.float64) + 0.5, K, dist), K, R, t)
     return o.astype(np.float32), d.astype(np.float32)
 
 

@@ -76,3 +76,19 @@ def test_light_numbering_and_direction():
 def test_tonemap(value, expected):
     assert tonemap_u8(np.full((1, 1, 3), value))[0, 0, 0] == expected
     assert tonemap(np.array([-1.0]))[0] == 0.0
+
+
+def test_camera_rays_undo_distortion():
+    """camera_rays: points along each ray project (with the camera's distortion) back to its pixel centre."""
+    import cv2
+
+    from lightstage.cameras import PinholeCamera, camera_rays, look_at, pixel_centers
+
+    R, t = look_at(np.array([0.0, -1.0, 0.2]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    K = np.array([[60.0, 0, 16.0], [0, 60.0, 12.0], [0, 0, 1]])
+    dist = np.array([-0.2, 0.05, 0.001, -0.002, 0.0])
+    cam = PinholeCamera(K, R, t, 32, 24, dist)
+    o, d = camera_rays(cam)
+    assert o.shape == d.shape == (32 * 24, 3)
+    uv, _ = cv2.projectPoints(o + 0.7 * d, cv2.Rodrigues(R)[0], t, K, dist)
+    np.testing.assert_allclose(uv[:, 0], pixel_centers(32, 24).reshape(-1, 2), atol=1e-3)

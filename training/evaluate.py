@@ -18,7 +18,7 @@ import torch
 from tqdm import tqdm
 
 from lightstage.atomic import write_json_atomic
-from lightstage.cameras import PinholeCamera, pixel_centers, pixel_rays
+from lightstage.cameras import PinholeCamera, camera_rays
 from lightstage.errors import LightstageError
 from lightstage.tonemap import tonemap, tonemap_u8
 from lightstage.training.config import EvalConfig
@@ -26,18 +26,6 @@ from lightstage.training.data import TestImage
 from lightstage.training.metrics import image_metrics
 from lightstage.training.model import RelightModel
 from lightstage.workdir import WorkDir
-
-
-def camera_rays(camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
-    """World rays (H*W, 3) through the pixel centres of `camera` (distortion undone when present)."""
-    uv = pixel_centers(camera.width, camera.height).reshape(-1, 2)
-    if np.any(np.asarray(camera.dist) != 0):
-        import cv2
-
-        uv = cv2.undistortPoints(
-            uv[:, None, :].astype(np.float64), camera.K, np.asarray(camera.dist), P=camera.K
-        )[:, 0]
-    return pixel_rays(uv, camera.K, camera.R, camera.t)
 
 
 @torch.no_grad()

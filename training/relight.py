@@ -13,6 +13,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from lightstage.cameras import camera_rays
 from lightstage.errors import LightstageError
 from lightstage.training.envmap import EnvMap, Lights
 from lightstage.workdir import WorkDir
@@ -52,20 +53,6 @@ def load_model(work: WorkDir, checkpoint: str | None = None, device: str = "cpu"
     raise LightstageError(
         "this installation has no trained-model loader (lightstage.training.trained.load_trained)"
     )
-
-
-def camera_rays(camera) -> tuple[np.ndarray, np.ndarray]:
-    """World rays (H*W, 3) through the pixel centres of a PinholeCamera (OpenCV distortion undone)."""
-    from lightstage.cameras import pixel_centers, pixel_rays
-
-    uv = pixel_centers(camera.width, camera.height).reshape(-1, 2)
-    if np.any(np.asarray(camera.dist) != 0):
-        import cv2
-
-        uv = cv2.undistortPoints(
-            uv[:, None, :].astype(np.float64), camera.K, np.asarray(camera.dist), P=camera.K
-        )[:, 0]
-    return pixel_rays(uv, camera.K, camera.R, camera.t)
 
 
 def olat_images(model: RelightableModel, camera, directions: np.ndarray, batch_rays: int = 65536):
