@@ -546,7 +546,7 @@ def read_image(path: str | os.PathLike[str], expected_size: tuple[int, int] | No
     oiio.attribute("limits:imagesize_MB", MAX_DECODE_BYTES >> 20)  # OIIO's own guard, behind ours
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        raise LightstageError(f"{path}: cannot open image ({_oiio_error(oiio.geterror) or 'unknown format'})")
+        raise LightstageError(f"{path}: cannot open image ({oiio_error(oiio.geterror) or 'unknown format'})")
     try:
         spec = inp.spec()
         if spec.width * spec.height > MAX_PIXELS:
@@ -557,7 +557,7 @@ def read_image(path: str | os.PathLike[str], expected_size: tuple[int, int] | No
             )
         data = inp.read_image(0, 0, 0, spec.nchannels, "float")
         if data is None:
-            raise LightstageError(f"{path}: cannot decode image ({_oiio_error(inp.geterror)})")
+            raise LightstageError(f"{path}: cannot decode image ({oiio_error(inp.geterror)})")
     finally:
         inp.close()
     return np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
@@ -575,11 +575,11 @@ def write_image(path: str | os.PathLike[str], pixels: np.ndarray) -> None:
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(path))
         if out is None or not out.open(str(tmp), spec):
-            raise LightstageError(f"{path}: cannot write image ({_oiio_error(oiio.geterror)})")
+            raise LightstageError(f"{path}: cannot write image ({oiio_error(oiio.geterror)})")
         ok = out.write_image(pixels)
         out.close()
         if not ok:
-            raise LightstageError(f"{path}: cannot write image ({_oiio_error(out.geterror)})")
+            raise LightstageError(f"{path}: cannot write image ({oiio_error(out.geterror)})")
 
 
 def _has_exr_magic(path: Path) -> bool:
@@ -591,7 +591,7 @@ def _has_exr_magic(path: Path) -> bool:
         return False
 
 
-def _oiio_error(getter: Any) -> str:
+def oiio_error(getter: Any) -> str:
     """First line of an OpenImageIO error; its bindings raise on messages that are not valid UTF-8."""
     try:
         return _first_line(getter())

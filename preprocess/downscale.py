@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lightstage.capture.frames import read_exr_header
+from lightstage.capture.frames import oiio_error, read_exr_header
 from lightstage.errors import LightstageError
 from lightstage.workdir import DOWNSCALE
 
@@ -173,7 +173,7 @@ def decode_downscale(
     band_rows = max(factor, band_rows - band_rows % factor)
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        raise LightstageError(f"{path}: cannot open ({_first_line(oiio.geterror())})")
+        raise LightstageError(f"{path}: cannot open ({oiio_error(oiio.geterror)})")
     try:
         spec = inp.spec()
         names = list(spec.channelnames)
@@ -187,17 +187,12 @@ def decode_downscale(
             band = inp.read_scanlines(0, 0, y0 + y, y0 + y + n, 0, lo, hi, kind)
             if band is None or band.shape != (n, W, hi - lo):
                 raise LightstageError(
-                    f"{path}: corrupt EXR pixel data in rows {y}-{y + n - 1} ({_first_line(inp.geterror())})"
+                    f"{path}: corrupt EXR pixel data in rows {y}-{y + n - 1} ({oiio_error(inp.geterror)})"
                 )
             scaler.add(band if pick is None else np.ascontiguousarray(band[..., pick]))
         return scaler.result()
     finally:
         inp.close()
-
-
-def _first_line(text: str) -> str:
-    lines = str(text).strip().splitlines()
-    return lines[0][:200] if lines else "no details"
 
 
 def _block_any(flags: np.ndarray, factor: int) -> np.ndarray:
