@@ -120,11 +120,11 @@ def decode_only(paths: list[Path], repeats: int = 2) -> tuple[float, float]:
 def breakdown(paths: list[Path], tmp: Path) -> dict[str, dict[str, float]]:
     """Mean wall and CPU seconds per step of the per-frame work, in this process (one library thread); the
     write is timed for every lossless compression."""
-    import cv2
-
+    from lightstage.capture.frames import COMPRESSIONS
     from lightstage.preprocess.downscale import decode_downscale, decode_raw, downscale
     from lightstage.preprocess.flare import lit_threshold, thumbnail
-    from lightstage.preprocess.processed import COMPRESSIONS, to_float, to_half, write_processed
+    from lightstage.preprocess.processed import HalfRounder, write_processed
+    from lightstage.preprocess.run import _check_finite
     from lightstage.preprocess.stats import StatsAccumulator, luminance
 
     wall: dict[str, list[float]] = {}
@@ -138,6 +138,7 @@ def breakdown(paths: list[Path], tmp: Path) -> dict[str, dict[str, float]]:
         return out
 
     acc = StatsAccumulator(RES[1] // 4, RES[0] // 4)
+    rounder = HalfRounder(RES[1] // 4, RES[0] // 4)
     for i, p in enumerate(paths):
         timed(
             "decode+downscale_streamed", lambda p=p: decode_downscale(p, RES, 4.4019)
@@ -146,19 +147,19 @@ def breakdown(paths: list[Path], tmp: Path) -> dict[str, dict[str, float]]:
         small = timed("downscale", lambda px=px: downscale(px, 4.4019))
         del px
 
-        def check(small=small):  # noqa: ANN001, ANN202
-            cv2.checkRange(small.rgb, True, -65504.0, 65504.0)
-            return to_half(small.rgb)
+        def check(small=small, p=p):  # noqa: ANN001, ANN202
+            _check_finite(small.rgb, str(p))
+            return rounder(small.rgb)  # half planes; small.rgb is rounded in place
 
-        rgb_h = timed("half+check", check)
+        planes = timed("half+check", check)
         for comp in COMPRESSIONS:
             timed(
                 f"write_{comp}",
-                lambda c=comp, h=rgb_h, s=small: write_processed(tmp / f"w_{c}.exr", h, s.saturated, c),
+                lambda c=comp, h=planes, s=small: write_processed(tmp / f"w_{c}.exr", h, s.saturated, c),
             )
 
-        def stats(i=i, rgb_h=rgb_h, small=small):  # noqa: ANN001, ANN202
-            rgb = to_float(rgb_h)
+        def stats(i=i, small=small):  # noqa: ANN001, ANN202
+            rgb = small.rgb
             lum = luminance(rgb)
             th = thumbnail(lum, small.saturated, 8)
             acc.add(i, rgb, small.saturated, lit_threshold(th, 4.4019), lum)

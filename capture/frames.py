@@ -31,7 +31,8 @@ MAX_HEADER_BYTES = 1 << 20
 MAX_CHANNELS = 1024
 # Side limits handed to OpenEXR's own guard (setMaxImageSize / setMaxTileSize) as a second line of defence.
 MAX_SIDE = 65536
-COMPRESSIONS = ("zip", "piz", "none")
+COMPRESSIONS = ("zip", "piz", "rle", "none")
+PNG_COMPRESSION_LEVEL = 3
 
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 _FLAG_TILED, _FLAG_LONG_NAMES, _FLAG_DEEP, _FLAG_MULTIPART = 0x200, 0x400, 0x800, 0x1000
@@ -87,7 +88,12 @@ class FrameHeader:
 def _exr_compression(name: str) -> Any:
     import OpenEXR
 
-    table = {"zip": OpenEXR.ZIP_COMPRESSION, "piz": OpenEXR.PIZ_COMPRESSION, "none": OpenEXR.NO_COMPRESSION}
+    table = {
+        "zip": OpenEXR.ZIP_COMPRESSION,
+        "piz": OpenEXR.PIZ_COMPRESSION,
+        "rle": OpenEXR.RLE_COMPRESSION,
+        "none": OpenEXR.NO_COMPRESSION,
+    }
     if name not in table:
         raise LightstageError(f"unsupported EXR compression {name!r} (use one of {', '.join(COMPRESSIONS)})")
     return table[name]
@@ -514,8 +520,6 @@ def write_exr(
 
     String/float/int attributes are stored for provenance (floats become 32-bit in the header).
     """
-    import OpenEXR
-
     pixels = np.asarray(pixels)
     if pixels.ndim == 2:
         pixels = pixels[..., None]
@@ -523,8 +527,29 @@ def write_exr(
     if names is None or len(names) != pixels.shape[-1]:
         raise LightstageError(f"{path}: cannot write an image with {pixels.shape[-1]} channels as EXR")
     dtype = np.float16 if half else np.float32
-    # The bindings silently write wrong pixels from non-contiguous arrays: copy every plane contiguously.
     planes = {n: np.ascontiguousarray(pixels[..., i], dtype=dtype) for i, n in enumerate(names)}
+    write_exr_planes(path, planes, compression=compression, attributes=attributes)
+
+
+def write_exr_planes(
+    path: str | os.PathLike[str],
+    planes: dict[str, np.ndarray],
+    *,
+    compression: str = "zip",
+    attributes: dict[str, str | float | int] | None = None,
+) -> None:
+    """Write named (H, W) half/float planes as a scanline EXR, atomically, without repacking them.
+
+    The bindings silently write wrong pixels from non-contiguous arrays, so every plane must be C-contiguous.
+    """
+    import OpenEXR
+
+    for name, plane in planes.items():
+        if plane.ndim != 2 or not plane.flags.c_contiguous or plane.dtype not in (np.float16, np.float32):
+            raise LightstageError(
+                f"{path}: EXR plane {name!r} must be a C-contiguous 2-D half/float array, "
+                f"got {plane.dtype} {plane.shape}"
+            )
     header: dict[str, Any] = {"compression": _exr_compression(compression), "type": OpenEXR.scanlineimage}
     for k, v in (attributes or {}).items():
         header[k] = v if isinstance(v, str) else float(v)
@@ -572,6 +597,9 @@ def write_image(path: str | os.PathLike[str], pixels: np.ndarray) -> None:
         pixels = pixels[..., None]
     fmt = "uint8" if pixels.dtype == np.uint8 else "float"
     spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], fmt)
+    if Path(path).suffix.lower() == ".png":
+        # zlib level 3 instead of 6: +3% size on noisy previews, 2.5x faster (0.24 s vs 0.63 s at 2048x1366)
+        spec.attribute("png:compressionLevel", PNG_COMPRESSION_LEVEL)
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(path))
         if out is None or not out.open(str(tmp), spec):

@@ -12,12 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from lightstage.capture.frames import read_exr_header, write_exr
+from lightstage.capture.frames import read_exr_header, write_exr_planes
 from lightstage.errors import LightstageError
 
 CHANNELS = "RGBS"
-# Lossless EXR compressions for processed frames. ZIP is the smallest; RLE writes ~5x faster (+30% size).
-COMPRESSIONS = ("zip", "piz", "rle", "none")
 
 
 def to_half(x: np.ndarray) -> np.ndarray:
@@ -34,41 +32,50 @@ def to_float(x: np.ndarray) -> np.ndarray:
     return torch.from_numpy(np.ascontiguousarray(x)).float().numpy()
 
 
-def pack(rgb_half: np.ndarray, saturated: np.ndarray) -> np.ndarray:
-    """(h, w, 4) half image R, G, B, S from half RGB and bool flags."""
-    out = np.empty((*rgb_half.shape[:2], 4), np.float16)
-    out[..., :3] = rgb_half
-    out[..., 3] = saturated
-    return out
+class HalfRounder:
+    """Rounds (h, w, 3) float32 processed frames to the stored half precision, reusing its buffers.
+
+    `__call__` returns the R, G, B half planes the writer stores and rounds the float32 frame in place, so the
+    statistics see exactly the stored values (as a resumed run that reads the frame back does). Reusing one
+    planar buffer per chunk avoids page-faulting fresh memory for every frame.
+    """
+
+    def __init__(self, height: int, width: int) -> None:
+        import torch
+
+        self._planes = torch.empty((3, height, width), dtype=torch.float16)
+
+    def __call__(self, rgb: np.ndarray) -> np.ndarray:
+        """(3, h, w) float16 planes of `rgb` (valid until the next call); `rgb` is rounded in place."""
+        import torch
+
+        t = torch.from_numpy(rgb)
+        if tuple(t.shape) != (*self._planes.shape[1:], 3) or t.dtype != torch.float32:
+            raise LightstageError(
+                f"frame {t.dtype} {tuple(t.shape)} does not fit a {self._planes.shape} buffer"
+            )
+        self._planes.copy_(t.permute(2, 0, 1))
+        t.copy_(self._planes.permute(1, 2, 0))
+        return self._planes.numpy()
 
 
 def write_processed(
     path: str | os.PathLike[str],
-    rgb_half: np.ndarray,
+    rgb_planes: np.ndarray,
     saturated: np.ndarray,
-    compression: str = "zip",
+    compression: str = "piz",
     attributes: dict[str, str | float | int] | None = None,
 ) -> None:
-    """Write a processed frame atomically (RGB already rounded to half by the caller)."""
-    if compression != "rle":
-        write_exr(
-            path, pack(rgb_half, saturated), compression=compression, channels=CHANNELS, attributes=attributes
+    """Write a processed frame atomically from (3, h, w) half R, G, B planes (see `HalfRounder`) and (h, w)
+    bool saturation flags."""
+    rgb_planes = np.asarray(rgb_planes)
+    if rgb_planes.ndim != 3 or rgb_planes.shape[0] != 3 or rgb_planes.shape[1:] != saturated.shape:
+        raise LightstageError(
+            f"{path}: expected (3, h, w) RGB planes and (h, w) flags, got {rgb_planes.shape} and {saturated.shape}"
         )
-        return
-    import OpenEXR
-
-    from lightstage.atomic import atomic_path
-
-    planes = {c: np.ascontiguousarray(rgb_half[..., i], dtype=np.float16) for i, c in enumerate("RGB")}
+    planes = {c: np.ascontiguousarray(rgb_planes[i], dtype=np.float16) for i, c in enumerate("RGB")}
     planes["S"] = saturated.astype(np.float16)
-    header: dict = {"compression": OpenEXR.RLE_COMPRESSION, "type": OpenEXR.scanlineimage}
-    for k, v in (attributes or {}).items():
-        header[k] = v if isinstance(v, str) else float(v)
-    with atomic_path(path) as tmp:
-        try:
-            OpenEXR.File(header, planes).write(str(tmp))
-        except Exception as e:  # noqa: BLE001 - one clear message naming the file
-            raise LightstageError(f"{path}: cannot write EXR ({str(e).strip()[:200]})") from None
+    write_exr_planes(path, planes, compression=compression, attributes=attributes)
 
 
 def read_processed(

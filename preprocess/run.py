@@ -159,10 +159,10 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
     from lightstage.preprocess.downscale import decode_downscale
     from lightstage.preprocess.flare import lit_threshold, thumbnail
     from lightstage.preprocess.processed import (
+        HalfRounder,
         processed_ok,
         read_processed_half,
         to_float,
-        to_half,
         write_processed,
     )
     from lightstage.preprocess.stats import StatsAccumulator, luminance
@@ -197,6 +197,7 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
     )
     _remove_stale_temps(partial.parent, [partial.stem])
     acc = StatsAccumulator(h, w)
+    rounder = HalfRounder(h, w)
     thumbs, sthumbs, taus = [], [], []
     problems: list[tuple[int, str]] = []
     processed = reused = 0
@@ -205,18 +206,18 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
         try:
             if processed_ok(out, (w, h)):
                 rgb_h, sat = read_processed_half(out, (w, h))
+                rgb32 = to_float(rgb_h)
                 reused += 1
             else:
                 small = decode_downscale(raw, (W, H), job.cutoff, cfg.band_rows)
-                rgb = small.rgb
+                rgb32, sat = small.rgb, small.saturated
                 if job.exposure_scale != 1.0:
-                    rgb *= np.float32(job.exposure_scale)
-                _check_finite(rgb, raw)
-                rgb_h = to_half(rgb)
-                sat = small.saturated
-                write_processed(out, rgb_h, sat, cfg.compression)
+                    rgb32 *= np.float32(job.exposure_scale)
+                _check_finite(rgb32, raw)
+                write_processed(
+                    out, rounder(rgb32), sat, cfg.compression
+                )  # rgb32 now holds the stored values
                 processed += 1
-            rgb32 = to_float(rgb_h)
             lum = luminance(rgb32)
             th = thumbnail(lum, sat, cfg.flare_thumb)
             tau = lit_threshold(th, job.cutoff, cfg.lit_ratio, cfg.lit_floor)
@@ -253,12 +254,12 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
 
 
 def _check_finite(rgb: np.ndarray, raw: str) -> None:
-    """Refuse a frame with NaN/Inf samples or processed values beyond the half range (cheap SIMD check;
-    an area mean is non-finite when any of its sources is)."""
-    import cv2
+    """Refuse a frame with NaN/Inf samples or processed values beyond the half range (one SIMD min/max pass,
+    NaN propagates; an area mean is non-finite when any of its sources is)."""
+    import torch
 
-    ok, _ = cv2.checkRange(rgb, True, -65504.0, 65504.0)
-    if not ok:
+    lo, hi = torch.aminmax(torch.from_numpy(rgb))
+    if not (-65504.0 <= float(lo) and float(hi) <= 65504.0):
         bad = int(np.count_nonzero(~np.isfinite(rgb)))
         big = int(np.count_nonzero(np.abs(np.nan_to_num(rgb)) > 65504.0))
         raise LightstageError(

@@ -28,7 +28,7 @@ from lightstage.preprocess.downscale import (
     downscale_reference,
     saturation_half,
 )
-from lightstage.preprocess.processed import processed_ok, read_processed, to_half, write_processed
+from lightstage.preprocess.processed import HalfRounder, processed_ok, read_processed, write_processed
 from lightstage.preprocess.run import run_preprocess
 from lightstage.preprocess.stats import StatsAccumulator, direct_stats, merge_tree
 from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND, WorkDir
@@ -104,14 +104,18 @@ def test_band_decoder_names_file_and_rows_of_corrupt_pixel_data(tmp_path: Path) 
         decode_downscale(path, (512, 340), CUTOFF)
 
 
-@pytest.mark.parametrize("compression", ["zip", "rle"])
+@pytest.mark.parametrize("compression", ["zip", "piz", "rle", "none"])
 def test_processed_frame_roundtrip_and_validity(tmp_path: Path, compression: str) -> None:
     rng = np.random.default_rng(2)
     d = downscale(_frame(rng, 32, 48), CUTOFF)
+    expected = d.rgb.astype(np.float16)
     path = tmp_path / "f.exr"
-    write_processed(path, to_half(d.rgb), d.saturated, compression)
+    planes = HalfRounder(8, 12)(d.rgb)  # rounds d.rgb in place to what is stored
+    np.testing.assert_array_equal(planes, expected.transpose(2, 0, 1))
+    np.testing.assert_array_equal(d.rgb, expected.astype(np.float32))
+    write_processed(path, planes, d.saturated, compression)
     rgb, sat = read_processed(path, (12, 8))
-    np.testing.assert_array_equal(rgb, d.rgb.astype(np.float16).astype(np.float32))
+    np.testing.assert_array_equal(rgb, expected.astype(np.float32))
     np.testing.assert_array_equal(sat, d.saturated)
     assert processed_ok(path, (12, 8))
     assert not processed_ok(path, (12, 9))  # wrong size
