@@ -21,9 +21,7 @@ class PreprocessConfig:
     # processed frames: piz | zip | rle | none (lossless only). PIZ (wavelet) is both smaller and ~40% faster
     # to write than ZIP on noisy HDR frames (docs/benchmarks.md); rle is fastest but 45% larger.
     compression: str = "piz"
-    band_rows: int = (
-        64  # raw rows decoded and downscaled per band (multiple of 4): small enough to stay in cache
-    )
+    band_rows: int = 32  # raw rows decoded and downscaled per band (multiple of 4): stays in cache
     # ---- scheduling
     chunk_lights: int = 32  # lights per task: a chunk's partial statistics merge with the others in a tree
     window: int = 0  # tasks in flight with a dask client (0: 4 per worker thread)
@@ -116,7 +114,7 @@ class PreprocessConfig:
 
 
 # Bumped when the statistics or segmentation change meaning, so stale view outputs are recomputed.
-STATS_FORMAT = 1
+STATS_FORMAT = 2  # 2: frame thumbnails cover whole blocks only
 
 
 def _hash(obj: Any) -> str:

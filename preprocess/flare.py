@@ -25,14 +25,22 @@ class Thumbnail:
 
 
 def thumbnail(lum: np.ndarray, saturated: np.ndarray, factor: int) -> Thumbnail:
-    """Area-average thumbnails (factor x smaller, at least 1x1) of luminance and saturation flags."""
+    """Area-average thumbnails (factor x smaller, at least 1x1) of luminance and saturation flags; the last
+    rows/columns that do not fill a block are left out (OpenCV's integer-factor path, 5x faster)."""
     import cv2
 
+    lum, saturated = _whole_blocks(lum, factor), _whole_blocks(saturated, factor)
     h, w = lum.shape
     size = (max(1, w // factor), max(1, h // factor))
     t_lum = cv2.resize(lum, size, interpolation=cv2.INTER_AREA)
     t_sat = cv2.resize(saturated.astype(np.float32), size, interpolation=cv2.INTER_AREA)
     return Thumbnail(t_lum, t_sat)
+
+
+def _whole_blocks(img: np.ndarray, factor: int) -> np.ndarray:
+    """`img` cropped to whole factor x factor blocks (unchanged when a side is shorter than one block)."""
+    h, w = img.shape[:2]
+    return img[: h - h % factor if h >= factor else h, : w - w % factor if w >= factor else w]
 
 
 def lit_threshold(thumb: Thumbnail, cutoff: float, ratio: float = 4.0, floor: float = 2.0**-13) -> float:
@@ -42,32 +50,41 @@ def lit_threshold(thumb: Thumbnail, cutoff: float, ratio: float = 4.0, floor: fl
     return ratio * max(dark, 0.0) + floor * cutoff
 
 
-def mask_thumbnail(mask: np.ndarray, dilate: int, shape: tuple[int, int]) -> np.ndarray:
-    """(th, tw) bool: thumbnail pixels that touch the mask dilated by `dilate` pixels."""
+def mask_thumbnail(mask: np.ndarray, dilate: int, factor: int) -> np.ndarray:
+    """(th, tw) bool: pixels of a `factor` x smaller thumbnail (as `thumbnail`) that touch the mask dilated by
+    `dilate` pixels."""
     import cv2
 
     m = mask.astype(np.uint8)
     if dilate > 0:
         m = cv2.dilate(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * dilate + 1, 2 * dilate + 1)))
+    m = _whole_blocks(m, factor)  # the area the frame thumbnails cover
+    shape = (max(1, m.shape[0] // factor), max(1, m.shape[1] // factor))
     t = cv2.resize(m.astype(np.float32), (shape[1], shape[0]), interpolation=cv2.INTER_AREA)
     return t > 0
 
 
 def flare_scores(
-    lum_thumbs: np.ndarray, sat_thumbs: np.ndarray, mask: np.ndarray, dilate: int, cutoff: float
+    lum_thumbs: np.ndarray,
+    sat_thumbs: np.ndarray,
+    mask: np.ndarray,
+    dilate: int,
+    cutoff: float,
+    factor: int,
 ) -> np.ndarray:
-    """(k,) flare scores of a view's k frames from their (k, th, tw) thumbnails and the view's mask."""
+    """(k,) flare scores of a view's k frames from their (k, th, tw) thumbnails (`factor` x smaller, see
+    `thumbnail`) and the view's mask."""
     k, th, tw = lum_thumbs.shape
     if k == 0:
         return np.zeros(0)
-    inside = mask_thumbnail(mask, dilate, (th, tw))
+    inside = mask_thumbnail(mask, dilate, factor)
     outside = ~inside
-    px = mask.shape[0] * mask.shape[1] / float(th * tw)  # processed pixels per thumbnail pixel
+    px = _whole_blocks(mask, factor).size / float(th * tw)  # processed pixels per thumbnail pixel
     typical = np.median(lum_thumbs, axis=0)
     excess = np.maximum(lum_thumbs - typical[None], 0.0)
     excess = np.maximum(excess, sat_thumbs * cutoff)  # saturated area counts at the cutoff
     outside_energy = (excess[:, outside]).sum(axis=1) * px
-    fg = mask_thumbnail(mask, 0, (th, tw)) if mask.any() else inside
+    fg = mask_thumbnail(mask, 0, factor) if mask.any() else inside
     fg_energy = float(np.median(lum_thumbs[:, fg].sum(axis=1) * px)) if fg.any() else 0.0
     floor = 1e-3 * cutoff * mask.size  # scale for views with no or a dark foreground
     return outside_energy / max(fg_energy, floor)

@@ -318,7 +318,7 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
     zones = zone_map(mask, cfg.band_width)
     lum_thumbs = np.concatenate(thumbs) if thumbs else np.zeros((0, 1, 1), np.float32)
     sat_thumbs = np.concatenate(sthumbs) if sthumbs else np.zeros((0, 1, 1), np.float32)
-    scores = flare_scores(lum_thumbs, sat_thumbs, mask, cfg.flare_dilate, job.cutoff)
+    scores = flare_scores(lum_thumbs, sat_thumbs, mask, cfg.flare_dilate, job.cutoff, cfg.flare_thumb)
     lights = list(stats.lights)
     rejected = [lt for lt, s in zip(lights, scores, strict=True) if s > cfg.flare_threshold]
     mean_lum = stats.mean @ np.array([0.2126, 0.7152, 0.0722], np.float32)
