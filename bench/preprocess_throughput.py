@@ -230,8 +230,8 @@ def main() -> None:
     )
     ap.add_argument(
         "--compression",
-        default="piz",
-        help="processed-frame compression (piz | zip | rle | none; default piz)",
+        default=None,
+        help="processed-frame compression (rle | piz | zip | none; default: the stage's)",
     )
     ap.add_argument(
         "--workers", type=int, nargs="+", default=[1, 2], help="worker counts to run (default 1 2)"
@@ -239,6 +239,10 @@ def main() -> None:
     ap.add_argument("--tmp", type=Path, default=None, help="where to put the temp dir (default: system temp)")
     ap.add_argument("--skip-rss-check", action="store_true", help="skip the longer-view memory run")
     args = ap.parse_args()
+    if args.compression is None:
+        from lightstage.preprocess.config import PreprocessConfig
+
+        args.compression = PreprocessConfig().compression
 
     from lightstage.threads import set_library_threads
 

@@ -18,9 +18,10 @@ class PreprocessConfig:
     the simulator and sized for the reference stage)."""
 
     # ---- downscale / output frames
-    # processed frames: piz | zip | rle | none (lossless only). PIZ (wavelet) is both smaller and ~40% faster
-    # to write than ZIP on noisy HDR frames (docs/benchmarks.md); rle is fastest but 45% larger.
-    compression: str = "piz"
+    # processed frames: rle | piz | zip | none (lossless only). RLE is the default because it keeps the stage
+    # within 1.3x of the raw decode (0.07 CPU-s per 2048x1366 frame); PIZ (wavelet) makes frames 31% smaller
+    # at 2x that write time, ZIP is as small as PIZ and slower still (docs/benchmarks.md).
+    compression: str = "rle"
     band_rows: int = 32  # raw rows decoded and downscaled per band (multiple of 4): stays in cache
     # ---- scheduling
     chunk_lights: int = 32  # lights per task: a chunk's partial statistics merge with the others in a tree
