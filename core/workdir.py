@@ -77,6 +77,23 @@ class WorkDir:
     def mean_image(self, view: ViewId) -> Path:
         return self.view_dir(view) / "mean.exr"
 
+    def sfm_hdr(self, view: ViewId) -> Path:
+        """Linear HDR image SfM works from (preprocess/sfm_image.py), at raw / sfm factor."""
+        return self.view_dir(view) / "sfm.exr"
+
+    def sfm_image(self, view: ViewId) -> Path:
+        """8-bit tonemapped SfM image (one exposure for the capture)."""
+        return self.view_dir(view) / "sfm.png"
+
+    def sfm_mask(self, view: ViewId) -> Path:
+        """The view's mask at the SfM image's resolution (SfM features only on the object)."""
+        return self.view_dir(view) / "sfm_mask.png"
+
+    @property
+    def sfm_info(self) -> Path:
+        """JSON: the SfM images' downscale factor from raw, size, lights and exposure."""
+        return self.preprocess_dir / "sfm_images.json"
+
     # calibration
     @property
     def calibration_dir(self) -> Path:

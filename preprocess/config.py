@@ -44,6 +44,12 @@ class PreprocessConfig:
     flare_thumb: int = 8  # per-frame thumbnails for flare scoring are this many times smaller
     flare_threshold: float = 0.15  # reject a frame when its flare score exceeds this
     max_lost_fraction: float = 0.1  # flag views that lose more than this fraction of frames (bad + rejected)
+    # ---- SfM images (calibration's input, preprocess/sfm_image.py)
+    sfm_max_side: int = (
+        2048  # at raw / f, the largest with long side <= this (f <= 4; 0: processed resolution)
+    )
+    sfm_lights: int = 8  # frames (evenly spread lights, the same for every view) averaged per view
+    sfm_trim: bool = True  # leave each pixel's brightest of those frames out (specular highlights)
     # ---- previews
     exposure: float = 0.0  # tonemap exposure for wellit/overlay PNGs; 0 = automatic, once per capture
     exposure_percentile: float = 99.0  # automatic exposure maps this foreground luminance percentile to 1
@@ -83,7 +89,9 @@ class PreprocessConfig:
         for key in ("chunk_lights", "flare_thumb"):
             if getattr(self, key) < 1:
                 raise bad(key, "expected an integer >= 1")
-        for key in ("window", "open_radius", "close_radius", "band_width", "flare_dilate"):
+        if self.sfm_lights < 1:
+            raise bad("sfm_lights", "expected an integer >= 1")
+        for key in ("window", "sfm_max_side", "open_radius", "close_radius", "band_width", "flare_dilate"):
             if getattr(self, key) < 0:
                 raise bad(key, "expected an integer >= 0")
         for key in ("lit_ratio", "lit_floor", "centre_weight", "flare_threshold", "exposure"):

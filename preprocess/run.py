@@ -83,6 +83,8 @@ class ViewJob:
     config: PreprocessConfig
     gt_mask: str | None = None
     raw_paths: tuple[str, ...] = ()
+    raw_size: tuple[int, int] = (0, 0)  # (width, height)
+    exposure_scale: float = 1.0
 
 
 @dataclass
@@ -99,6 +101,8 @@ class ViewRecord:
     rejected: list[int]
     foreground_fraction: float
     exposure_level: float  # high percentile of the mean image's foreground luminance
+    sfm_lights: list[int] = field(default_factory=list)  # frames in the SfM image
+    sfm_level: float = 0.0  # the same percentile of the SfM image's foreground luminance
     iou: float | None = None
     seconds: float = 0.0
     chunks: list[dict[str, Any]] = field(default_factory=list)
@@ -279,6 +283,7 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
     from lightstage.preprocess.flare import flare_scores
     from lightstage.preprocess.processed import to_half
     from lightstage.preprocess.segment import iou, segment, zone_map
+    from lightstage.preprocess.sfm_image import upsample_mask
     from lightstage.preprocess.stats import ViewStats, empty_stats, merge_tree
 
     start = time.perf_counter()
@@ -326,9 +331,13 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
     gt_iou = None
     if job.gt_mask and Path(job.gt_mask).is_file():
         gt_iou = iou(mask, read_gt_mask(job.gt_mask, (w, h)))
+    sfm, sfm_lights = _sfm_image(work, job, set(lights) - set(rejected))
+    sfm_mask = upsample_mask(mask, (sfm.shape[1], sfm.shape[0])) > 0
+    sfm_lum = sfm @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    sfm_level = float(np.percentile(sfm_lum[sfm_mask], cfg.exposure_percentile)) if sfm_mask.any() else 0.0
 
     vdir = work.view_dir(view)
-    _remove_stale_temps(vdir, ["stats", "mean", "mask", "zones", "view"])
+    _remove_stale_temps(vdir, ["stats", "mean", "sfm", "mask", "zones", "view"])
     stats.save(
         vdir / "stats.npz",
         extras={
@@ -338,6 +347,7 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
         },
     )
     write_exr(work.mean_image(view), to_half(stats.mean), compression="zip")
+    write_exr(work.sfm_hdr(view), to_half(sfm), compression="zip")
     write_image(work.mask(view), (mask * 255).astype(np.uint8))
     write_image(work.zones(view), zones)
     record = ViewRecord(
@@ -355,6 +365,8 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
         rejected=rejected,
         foreground_fraction=float(mask.mean()),
         exposure_level=level,
+        sfm_lights=sfm_lights,
+        sfm_level=sfm_level,
         iou=gt_iou,
         seconds=time.perf_counter() - start,
         chunks=[asdict(r) for r in chunk_records or []],
@@ -367,6 +379,36 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
     except OSError:
         pass
     return record
+
+
+def _sfm_image(work: WorkDir, job: ViewJob, usable: set[int]) -> tuple[np.ndarray, list[int]]:
+    """The view's SfM image (see preprocess/sfm_image.py) and the lights in it: the configured spread of the
+    capture's lights, less this view's bad and rejected frames."""
+    from lightstage.preprocess.sfm_image import SfmSource, sfm_image_factor, sfm_mean_image, spread_lights
+
+    cfg = job.config
+    W, H = job.raw_size
+    factor = sfm_image_factor(W, H, cfg.sfm_max_side)
+    chosen = [lt for lt in spread_lights(list(job.lights), cfg.sfm_lights) if lt in usable]
+    if not chosen:  # all of the spread's frames are bad here: the usable ones instead (none: a black image)
+        chosen = spread_lights(sorted(usable), cfg.sfm_lights)
+    if not chosen:
+        return np.zeros((H // factor, W // factor, 3), np.float32), []
+    view = ViewId(job.group, job.camera)
+    src = SfmSource(
+        lights=chosen,
+        raw_paths=dict(zip(job.lights, job.raw_paths, strict=True)),
+        processed_paths={lt: str(work.frame(FrameId(job.group, job.camera, lt))) for lt in chosen},
+        raw_size=(W, H),
+        factor=factor,
+        cutoff=job.cutoff,
+        exposure_scale=job.exposure_scale,
+        band_rows=cfg.band_rows,
+    )
+    try:
+        return sfm_mean_image(src, cfg.sfm_trim), chosen
+    except LightstageError as e:
+        raise LightstageError(f"{view}: SfM image: {e}") from None
 
 
 def read_gt_mask(path: str | os.PathLike[str], size: tuple[int, int]) -> np.ndarray:
@@ -396,7 +438,13 @@ def _view_finished(work: WorkDir, job: ViewJob) -> ViewRecord | None:
     if record.key != job.config.view_key():
         return None
     v = ViewId(job.group, job.camera)
-    for p in (work.mask(v), work.zones(v), work.mean_image(v), work.view_dir(v) / "stats.npz"):
+    for p in (
+        work.mask(v),
+        work.zones(v),
+        work.mean_image(v),
+        work.sfm_hdr(v),
+        work.view_dir(v) / "stats.npz",
+    ):
         if not p.is_file():
             return None
     for lt in record.lights:
@@ -446,6 +494,8 @@ def run_preprocess(
                 config,
                 str(gt) if gt.is_file() else None,
                 raw,
+                (stage.width, stage.height),
+                capture.info.exposure_scale,
             )
         )
         chunk_jobs[view] = [
@@ -634,17 +684,22 @@ def _view_after_chunks(job: ViewJob, chunk_records: list[ChunkRecord]) -> ViewRe
 def write_previews(
     work: WorkDir, jobs: list[ViewJob], records: dict[ViewId, ViewRecord], config: PreprocessConfig
 ) -> float:
-    """Write wellit.png (8-bit tonemapped mean image, for SfM) and overlay.png for every finished view, with
-    one exposure for the whole capture; views whose previews already use that exposure are skipped."""
+    """Write wellit.png (8-bit tonemapped mean image), overlay.png, and the SfM image (sfm.png) with its mask
+    (sfm_mask.png) for every finished view, with one exposure for the whole capture per kind of image (and
+    WORK/preprocess/sfm_images.json); views whose previews already use those exposures are skipped."""
     from lightstage.capture.frames import read_exr, write_image
     from lightstage.preprocess.segment import overlay, read_mask, zone_map
+    from lightstage.preprocess.sfm_image import sfm_image_factor, upsample_mask
     from lightstage.tonemap import tonemap_u8
 
-    levels = [r.exposure_level for r in records.values() if r.exposure_level > 0]
-    exposure = config.exposure or (1.0 / float(np.median(levels)) if levels else 1.0)
-    exposure = float(np.float32(exposure))
+    def auto(levels: list[float]) -> float:
+        levels = [x for x in levels if x > 0]
+        return float(np.float32(config.exposure or (1.0 / float(np.median(levels)) if levels else 1.0)))
+
+    exposure = auto([r.exposure_level for r in records.values()])
+    sfm_exposure = auto([r.sfm_level for r in records.values()])
     book_path = work.preprocess_dir / PREVIEWS
-    _remove_stale_temps(work.preprocess_dir, [Path(PREVIEWS).stem])
+    _remove_stale_temps(work.preprocess_dir, [Path(PREVIEWS).stem, work.sfm_info.stem])
     _remove_stale_temps(work.report("preprocess").parent, ["preprocess"])
     try:
         book = json.loads(book_path.read_text()) if book_path.is_file() else {}
@@ -654,20 +709,37 @@ def write_previews(
     for job in jobs:
         view = ViewId(job.group, job.camera)
         rec = records[view]
-        stamp = {"exposure": exposure, "view_key": rec.key, "lights": len(rec.lights)}
-        wellit, over = work.wellit(view), work.view_dir(view) / "overlay.png"
-        _remove_stale_temps(work.view_dir(view), ["wellit", "overlay"])
-        if book.get(str(view)) == stamp and wellit.is_file() and over.is_file():
+        stamp = {
+            "exposure": exposure,
+            "sfm_exposure": sfm_exposure,
+            "view_key": rec.key,
+            "lights": len(rec.lights),
+        }
+        outputs = (
+            work.wellit(view),
+            work.view_dir(view) / "overlay.png",
+            work.sfm_image(view),
+            work.sfm_mask(view),
+        )
+        _remove_stale_temps(work.view_dir(view), [p.stem for p in outputs])
+        if book.get(str(view)) == stamp and all(p.is_file() for p in outputs):
             continue
-        mean = read_exr(work.mean_image(view)).astype(np.float32)
-        img = tonemap_u8(mean, exposure)
+        img = tonemap_u8(read_exr(work.mean_image(view)).astype(np.float32), exposure)
         mask = read_mask(work.mask(view))
-        write_image(wellit, img)
-        write_image(over, overlay(img, mask, zone_map(mask, config.band_width)))
+        write_image(outputs[0], img)
+        write_image(outputs[1], overlay(img, mask, zone_map(mask, config.band_width)))
+        sfm = read_exr(work.sfm_hdr(view)).astype(np.float32)
+        write_image(outputs[2], tonemap_u8(sfm, sfm_exposure))
+        write_image(outputs[3], upsample_mask(mask, (sfm.shape[1], sfm.shape[0])))
         book[str(view)] = stamp
         changed = True
     if changed:
         write_json_atomic(book_path, book)
+    if jobs:
+        W, H = jobs[0].raw_size
+        f = sfm_image_factor(W, H, config.sfm_max_side)
+        info = {"factor": f, "size": [W // f, H // f], "lights": config.sfm_lights, "exposure": sfm_exposure}
+        write_json_atomic(work.sfm_info, info)
     return exposure
 
 

@@ -310,6 +310,69 @@ def _snapshot(work: WorkDir) -> dict[str, bytes]:
 
 
 @pytest.mark.slow
+def test_sfm_image_factor_and_light_spread() -> None:
+    from lightstage.preprocess.sfm_image import sfm_image_factor, spread_lights
+    from lightstage.workdir import DOWNSCALE
+
+    assert sfm_image_factor(768, 512, 2048) == 1  # small: raw
+    assert sfm_image_factor(8192, 5464, 2048) == DOWNSCALE  # paper: the processed frames
+    assert sfm_image_factor(4096, 2732, 2048) == 2
+    assert sfm_image_factor(768, 512, 0) == DOWNSCALE  # 0: always the processed frames
+    assert sfm_image_factor(770, 514, 500) == 2  # 3 does not divide 770
+    assert spread_lights(list(range(32)), 4) == [0, 10, 21, 31]
+    assert spread_lights([5, 1, 3], 8) == [1, 3, 5]
+
+
+def _trimmed_mean(frames: list[np.ndarray]) -> np.ndarray:
+    stack = np.stack(frames).astype(np.float64)
+    return (stack.sum(0) - stack.max(0)) / (len(frames) - 1)
+
+
+def test_sfm_image_of_a_view_is_the_trimmed_mean_of_raw_frames(tiny_run, tiny_capture: Path) -> None:
+    """tiny's raw 256x172 fits the 2048 cap: the SfM image is at raw resolution, from raw frames, with the view's
+    rejected frames left out; sfm.png and sfm_mask.png match it and sfm_images.json says so."""
+    import cv2
+
+    from lightstage.capture.frames import read_exr
+    from lightstage.capture.layout import open_capture
+    from lightstage.preprocess.sfm_image import spread_lights
+
+    work, _ = tiny_run
+    cap = open_capture(tiny_capture)
+    info = json.loads(work.sfm_info.read_text())
+    assert info["factor"] == 1 and info["size"] == [256, 172] and info["exposure"] > 0
+    report = json.loads(work.report("preprocess").read_text())
+    rejected = set(report["rejected_frames"])
+    for view in (ViewId("040", "cam01"), *[ViewId(*f.split("/")[:2]) for f in sorted(rejected)[:2]]):
+        record = json.loads((work.view_dir(view) / "view.json").read_text())
+        chosen = [lt for lt in spread_lights(list(range(12)), 8) if f"{view}/{lt:03d}" not in rejected]
+        assert record["sfm_lights"] == chosen
+        raw = [read_exr(cap.frame_path(FrameId(view.group, view.camera, lt))) for lt in chosen]
+        hdr = read_exr(work.sfm_hdr(view)).astype(np.float32)
+        np.testing.assert_allclose(hdr, _trimmed_mean(raw), rtol=2e-3, atol=1e-6)  # stored as half
+        png = cv2.imread(str(work.sfm_image(view)), cv2.IMREAD_UNCHANGED)
+        mask = cv2.imread(str(work.sfm_mask(view)), cv2.IMREAD_UNCHANGED)
+        assert png.shape == (172, 256, 3) and png.dtype == np.uint8 and png.max() > 100
+        small_mask = cv2.imread(str(work.mask(view)), cv2.IMREAD_UNCHANGED)
+        np.testing.assert_array_equal(mask[::4, ::4], small_mask)  # nearest-neighbour upsampling
+
+
+def test_sfm_image_at_processed_resolution(tiny_capture: Path, tmp_path: Path) -> None:
+    from lightstage.capture.frames import read_exr
+
+    cap = _subset_capture(tiny_capture, tmp_path / "cap", groups=1, cameras=1)
+    work = _work(tmp_path / "work", cap)
+    run_preprocess(work, PreprocessConfig(sfm_max_side=0, sfm_lights=3, sfm_trim=False), progress=False)
+    view = ViewId("000", "cam00")
+    record = json.loads((work.view_dir(view) / "view.json").read_text())
+    assert record["sfm_lights"] == [lt for lt in (0, 6, 11) if lt not in record["rejected"]]
+    assert len(record["sfm_lights"]) >= 2
+    frames = [read_processed(work.frame(FrameId("000", "cam00", lt)))[0] for lt in record["sfm_lights"]]
+    hdr = read_exr(work.sfm_hdr(view)).astype(np.float32)
+    np.testing.assert_allclose(hdr, np.mean(frames, axis=0), rtol=2e-3, atol=1e-6)
+    assert json.loads(work.sfm_info.read_text())["size"] == [64, 43]
+
+
 def test_killed_run_resumes_with_identical_outputs(tiny_capture: Path, tmp_path: Path) -> None:
     cap = _subset_capture(tiny_capture, tmp_path / "cap", groups=2, cameras=2)
     config = tmp_path / "pp.yaml"
