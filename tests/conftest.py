@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -23,3 +28,33 @@ def tiny_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from lightstage.capture.simulate import simulate_capture
 
     return simulate_capture(tmp_path_factory.mktemp("sim") / "tiny", preset="tiny", seed=0, progress=False)
+
+
+class ProcessKiller:
+    """SIGKILLs process `pid` from a background thread once `ready()` holds (or at the timeout): fault
+    injection for runs on a real cluster. Use as a context manager around the run; `killed` says it happened."""
+
+    def __init__(self, pid: int, ready: Callable[[], bool], timeout_s: float = 60.0) -> None:
+        self.pid, self.ready, self.timeout_s = pid, ready, timeout_s
+        self.killed = False
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        deadline = time.time() + self.timeout_s
+        while time.time() < deadline and not self.ready():
+            time.sleep(0.01)
+        os.kill(self.pid, signal.SIGKILL)
+        self.killed = True
+
+    def __enter__(self) -> ProcessKiller:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._thread.join()
+
+
+@pytest.fixture
+def kill_process_when() -> type[ProcessKiller]:
+    """`with kill_process_when(pid, ready): run(...)` kills `pid` mid-run (see ProcessKiller)."""
+    return ProcessKiller

@@ -7,7 +7,6 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -152,7 +151,9 @@ def test_cli_run_capture_and_work(tmp_path: Path, capture: Path, monkeypatch) ->
 
 
 # ---- faults on a real LocalCluster -----------------------------------------------------------------------
-def test_worker_killed_mid_run_completes_with_identical_outputs(tmp_path: Path, capture: Path) -> None:
+def test_worker_killed_mid_run_completes_with_identical_outputs(
+    tmp_path: Path, capture: Path, kill_process_when
+) -> None:
     from lightstage.pipelines.cluster import ClusterSettings, dask_client
 
     ref = WorkDir.at(tmp_path / "ref")
@@ -160,29 +161,18 @@ def test_worker_killed_mid_run_completes_with_identical_outputs(tmp_path: Path, 
 
     work = WorkDir.at(tmp_path / "work")
     frames = work.root / "preprocess" / "frames"
-    killed: list[int] = []
     with dask_client(ClusterSettings(workers=2, dashboard=""), verbose=False) as client:
         pids = sorted(client.run(os.getpid).values())
-
-        def kill_one_worker() -> None:
-            deadline = time.time() + 60
-            while time.time() < deadline and len(list(frames.glob("*.txt"))) < 2:
-                time.sleep(0.02)
-            os.kill(pids[0], signal.SIGKILL)
-            killed.append(pids[0])
-
-        killer = threading.Thread(target=kill_one_worker)
-        killer.start()
-        res = run_pipeline(
-            work,
-            fake_config(preprocess={"delay": 0.4}),
-            capture=capture,
-            client=client,
-            progress=False,
-            log=lambda m: None,
-        )
-        killer.join()
-        assert killed and set(statuses(res).values()) == {"ran"}
+        with kill_process_when(pids[0], lambda: len(list(frames.glob("*.txt"))) >= 2) as killer:
+            res = run_pipeline(
+                work,
+                fake_config(preprocess={"delay": 0.4}),
+                capture=capture,
+                client=client,
+                progress=False,
+                log=lambda m: None,
+            )
+        assert killer.killed and set(statuses(res).values()) == {"ran"}
         after = sorted(client.run(os.getpid).values())
         # every worker, the restarted one included, got lightstage's malloc settings before it started
         malloc = client.run(os.environ.get, "MALLOC_MMAP_THRESHOLD_")

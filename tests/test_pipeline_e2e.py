@@ -93,14 +93,11 @@ def _batch_outputs(work: WorkDir) -> dict[str, bytes]:
 @pytest.mark.timeout(1800)
 @pytest.mark.skipif(bool(_missing_stages()), reason=f"stages not implemented yet: {_missing_stages()}")
 def test_real_stages_survive_a_killed_worker_with_identical_outputs(
-    tiny_capture: Path, tmp_path: Path
+    tiny_capture: Path, tmp_path: Path, kill_process_when
 ) -> None:
     """A dask worker SIGKILLed while the real preprocess stage runs: the run completes (the task is retried on
     the restarted worker) and validate..shard outputs equal those of an uninterrupted in-process run."""
     import os
-    import signal
-    import threading
-    import time
 
     from lightstage.pipelines.cluster import ClusterSettings, dask_client
     from lightstage.pipelines.config import PipelineConfig
@@ -113,32 +110,22 @@ def test_real_stages_survive_a_killed_worker_with_identical_outputs(
 
     work = WorkDir.at(tmp_path / "work")
     frames = work.root / "preprocess" / "frames"
-    killed: list[int] = []
     with dask_client(ClusterSettings(workers=2, dashboard=""), verbose=False) as client:
         pids = sorted(client.run(os.getpid).values())
-
-        def kill_one_worker() -> None:
-            deadline = time.time() + 300
-            while time.time() < deadline and len(list(frames.rglob("*.exr"))) < 8:
-                time.sleep(0.01)
-            os.kill(pids[0], signal.SIGKILL)
-            killed.append(pids[0])
-
-        killer = threading.Thread(target=kill_one_worker)
-        killer.start()
-        config = PipelineConfig.from_dict({"cluster": {"workers": 2}, **sections}, "work.yaml")
-        results = run_pipeline(
-            work,
-            config,
-            capture=tiny_capture,
-            to_stage="shard",
-            client=client,
-            progress=False,
-            log=lambda m: None,
-        )
-        killer.join()
+        ready = lambda: len(list(frames.rglob("*.exr"))) >= 8  # noqa: E731
+        with kill_process_when(pids[0], ready, timeout_s=300) as killer:
+            config = PipelineConfig.from_dict({"cluster": {"workers": 2}, **sections}, "work.yaml")
+            results = run_pipeline(
+                work,
+                config,
+                capture=tiny_capture,
+                to_stage="shard",
+                client=client,
+                progress=False,
+                log=lambda m: None,
+            )
         after = sorted(client.run(os.getpid).values())
-    assert killed and pids[0] not in after  # a worker really died mid-preprocess and was replaced
+    assert killer.killed and pids[0] not in after  # a worker really died mid-preprocess and was replaced
     assert {r.stage: r.status for r in results}["preprocess"] == "ran"
     assert read_record(work, "preprocess")["errors"] == 0
     ours, theirs = _batch_outputs(work), _batch_outputs(ref)
