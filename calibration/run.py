@@ -65,6 +65,7 @@ class CalibrateConfig:
     num_threads: int = 2
     seed: int = 0
     keep_sfm_workspace: bool = False  # keep WORK/calibration/sfm (images, database) for debugging
+    show_colmap_log: bool = False  # echo COLMAP's log (always in WORK/calibration/colmap.log) to stderr
 
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> CalibrateConfig:
@@ -111,7 +112,10 @@ class CalibrateConfig:
         return cfg
 
     def digest(self) -> str:
-        return hashlib.sha256(json.dumps(asdict(self), sort_keys=True).encode()).hexdigest()[:16]
+        """Hash of the settings that change the outputs (display-only ones left out)."""
+        d = asdict(self)
+        d.pop("show_colmap_log")
+        return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def _capture_of(work: WorkDir) -> Capture:
@@ -205,15 +209,25 @@ def _sfm_calibration(
         ransac_max_error_px=config.ransac_max_error_px,
         num_threads=config.num_threads,
         seed=config.seed,
+        verbose=config.show_colmap_log,
     )
     sfm_dir = work.calibration_dir / "sfm"
     initial = {
         v: (stage.view_camera(v.group, v.camera).R, stage.view_camera(v.group, v.camera).t) for v in views
     }
+    colmap_log = work.calibration_dir / "colmap.log"
     result = run_sfm(
-        images.views, sfm_intr, stage.camera_ids, sfm_dir, options, log=log, initial_poses=initial
+        images.views,
+        sfm_intr,
+        stage.camera_ids,
+        sfm_dir,
+        options,
+        log=log,
+        initial_poses=initial,
+        log_path=colmap_log,
     )
     stats = dict(result.stats)
+    stats["colmap_log"] = str(colmap_log)
     stats["images"] = {
         "factor": f,
         "size": [w, h],

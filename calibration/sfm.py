@@ -12,7 +12,11 @@ are shifted by +0.5 on extraction), so K at processed resolution is used as is.
 
 from __future__ import annotations
 
+import os
 import shutil
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -55,7 +59,35 @@ class SfmOptions:
     # With initial poses, match only view pairs whose camera centres are within this angle seen from the world
     # origin (on the simulator almost no verified matches span more than 90 deg); 0 or >= 180: exhaustive.
     max_pair_angle_deg: float = 90.0
-    verbose: bool = False
+    verbose: bool = False  # copy COLMAP's log to stderr after each run (it is always written to the log file)
+
+
+@contextmanager
+def native_stderr_to(log_path: Path, echo: bool = False) -> Iterator[Path]:
+    """Redirect file descriptor 2 (C/C++ stderr: COLMAP's glog and Ceres lines, which bypass Python and
+    `pycolmap.logging.minloglevel`) into `log_path` (appended) for the duration; fd 2 is restored on exit, also
+    on error. With `echo` the captured text is copied to the real stderr afterwards. Python's own stderr goes
+    to the file meanwhile too (it shares fd 2)."""
+    log_path = Path(log_path)
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(log_path, "ab") as f:
+            start = f.tell()
+            os.dup2(f.fileno(), 2)
+            try:
+                yield log_path
+            finally:
+                sys.stderr.flush()
+                os.dup2(saved, 2)
+    finally:
+        os.close(saved)
+    if echo:
+        with open(log_path, "rb") as f:
+            f.seek(start)
+            sys.stderr.write(f.read().decode("utf-8", "replace"))
+            sys.stderr.flush()
 
 
 @dataclass
@@ -131,6 +163,7 @@ def run_sfm(
     options: SfmOptions = SfmOptions(),
     log=print,
     initial_poses: dict[ViewId, tuple[np.ndarray, np.ndarray]] | None = None,
+    log_path: Path | None = None,
 ) -> SfmResult:
     """Run feature extraction, exhaustive matching and rig-aware incremental mapping.
 
@@ -138,21 +171,25 @@ def run_sfm(
     images' resolution. `initial_poses` (view -> world-to-camera (R, t), e.g. the nominal stage): when given
     and `options.init == "nominal"`, mapping starts from them (rig-structured triangulation + bundle adjustment
     rounds) instead of COLMAP's incremental registration, which needs more matches than small objects give.
-    Raises LightstageError naming the views that could not be registered.
+    COLMAP's own log (C-level stderr) goes to `log_path` (default: `work_dir`/../colmap.log), echoed to stderr
+    when `options.verbose`. Raises LightstageError naming the views that could not be registered.
     """
 
     import pycolmap
 
     pycolmap.set_random_seed(options.seed)
-    # COLMAP logs every matching block and solver retry through glog (thousands of lines per run): show only
-    # errors unless verbose; restored on return because the setting is process-wide.
-    log_level = pycolmap.logging.minloglevel
-    if not options.verbose:
-        pycolmap.logging.minloglevel = 2
+    # COLMAP logs every matching block, triangulation step and solver retry through glog (~1,000 lines per run,
+    # thousands in the demo), from C++ threads that `pycolmap.logging.minloglevel` does not silence: its stderr
+    # goes to the log file (fresh per run) and is shown only when verbose.
+    log_path = Path(log_path) if log_path is not None else Path(work_dir).parent / "colmap.log"
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    log_path.write_bytes(b"")
     try:
-        return _run_sfm(views, intrinsics, camera_order, work_dir, options, log, initial_poses)
-    finally:
-        pycolmap.logging.minloglevel = log_level
+        with native_stderr_to(log_path, echo=options.verbose):
+            return _run_sfm(views, intrinsics, camera_order, work_dir, options, log, initial_poses)
+    except LightstageError:
+        log(f"COLMAP's log: {log_path}")
+        raise
 
 
 def _run_sfm(
@@ -164,7 +201,7 @@ def _run_sfm(
     log,
     initial_poses: dict[ViewId, tuple[np.ndarray, np.ndarray]] | None,
 ) -> SfmResult:
-    """The body of `run_sfm` (logging level already set)."""
+    """The body of `run_sfm` (COLMAP's stderr already redirected)."""
     import time
 
     import pycolmap

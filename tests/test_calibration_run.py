@@ -4,6 +4,8 @@ conventions, the clear SfM failure, and (slow) SfM on the simulator's `small` ca
 from __future__ import annotations
 
 import json
+import os
+import re
 import shutil
 from pathlib import Path
 
@@ -153,6 +155,47 @@ def test_sfm_failure_is_a_clear_error_naming_views(tiny_capture: Path, tmp_path:
     report = json.loads(work.report("calibration").read_text())
     assert report["status"] == "failed" and "SfM" in report["error"]
     assert "feature_extraction" not in capfd.readouterr().err  # COLMAP's glog chatter is silenced
+
+
+# A glog line: severity letter, date, time with microseconds (COLMAP colours warnings, so no line anchor).
+GLOG_LINE = re.compile(r"[IWEF]\d{8} \d\d:\d\d:\d\d\.\d{6} ")
+
+
+def test_calibrate_prints_no_colmap_log_lines(tiny_capture: Path, tmp_path: Path, capfd):
+    """COLMAP's glog output (C-level stderr, hundreds of lines even here) goes to WORK/calibration/colmap.log,
+    not to the terminal; fd 2 works normally afterwards."""
+    work = WorkDir.at(tmp_path / "w")
+    stand_in_preprocess(tiny_capture, work)
+    capfd.readouterr()
+    run_calibrate(work, CalibrateConfig(method="sfm"), progress=True)
+    out, err = capfd.readouterr()
+    assert "SfM:" in out  # the stage's own progress lines still show
+    assert not GLOG_LINE.search(out + err), (out + err)[:2000]
+    log = work.calibration_dir / "colmap.log"
+    assert len(GLOG_LINE.findall(log.read_text())) > 100
+    report = json.loads(work.report("calibration").read_text())
+    assert report["sfm"]["colmap_log"] == str(log)
+    os.write(2, b"stderr is back\n")
+    assert "stderr is back" in capfd.readouterr().err
+
+
+def test_native_stderr_capture_restores_fd2_on_error_and_echoes(tmp_path: Path, capfd):
+    from lightstage.calibration.sfm import native_stderr_to
+
+    log = tmp_path / "sub" / "native.log"
+    with pytest.raises(RuntimeError, match="boom"):
+        with native_stderr_to(log):
+            os.write(2, b"I20261123 12:00:00.000000 1 x.cc:1] captured\n")
+            raise RuntimeError("boom")
+    os.write(2, b"after the error\n")
+    err = capfd.readouterr().err
+    assert "captured" not in err and "after the error" in err
+    assert "captured" in log.read_text()
+    # echo (verbose): the captured text is shown afterwards; the file keeps (appends) everything.
+    with native_stderr_to(log, echo=True):
+        os.write(2, b"second run\n")
+    assert capfd.readouterr().err == "second run\n"
+    assert log.read_text().count("\n") == 2
 
 
 def test_missing_preprocess_outputs_are_named(tiny_work: WorkDir, tmp_path: Path):
