@@ -3,10 +3,15 @@
 A light that a camera sees directly shows as a small clipped disc in that camera's frame of that light. Lights
 and cameras are locked to the rig, so in the stage rig frame each such observation is a ray from the camera
 centre towards the bulb, the same in every group (the groups only change what the object hides). Per (light,
-camera) the disc centre is taken from the processed frames of the groups where the disc is whole (not touching
-the object or the image border); the rays of all cameras that see the light are combined with the nominal
-position as a prior (per-axis `prior_sigma`): with one camera this moves the light onto its ray (2 of 3
-coordinates observed), with two or more it triangulates it. Lights never seen keep their nominal positions.
+camera) the disc centre is taken from the processed frames of the groups where the disc is whole (round, not cut
+by the image border, clear of the object mask or confirmed by several groups): a `BulbSighting` (`find_bulbs`). Sightings do not depend on the rig's gauge, so
+they are found once and turned into rays for any rig estimate:
+- `gauge_points`: the observed lights as extra nominal points for the world-frame gauge (`register.fit_gauge`):
+  a light seen by two or more cameras is triangulated, one seen by a single camera constrains the 2 coordinates
+  across its ray; the weight combines the ray precision and the light's mounting tolerance.
+- `locate_lights`: the final rig-frame positions, the rays combined with the nominal position as a prior
+  (per-axis `prior_sigma`): with one camera this moves the light onto its ray, with two or more it triangulates
+  it. Lights never seen keep their nominal positions.
 """
 
 from __future__ import annotations
@@ -17,10 +22,35 @@ import cv2
 import numpy as np
 
 from lightstage.capture.layout import Capture, FrameId, ViewId
+from lightstage.capture.stage import Stage
 from lightstage.errors import LightstageError
 from lightstage.workdir import DOWNSCALE, WorkDir
 
 LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
+
+
+@dataclass(frozen=True)
+class BulbSighting:
+    """A light's bulb seen directly by a camera: disc centre in processed pixels (median over groups)."""
+
+    light: int  # light index (= row of the stage's nominal rig-frame positions)
+    camera: str
+    uv: tuple[float, float]
+    groups: list[str]  # the groups whose frames showed the whole disc
+    touching_mask: bool = False  # confirmed by agreeing groups, not by a clear gap to the object mask
+
+
+@dataclass
+class BulbSightings:
+    """What `find_bulbs` saw, with counts for the report."""
+
+    sightings: list[BulbSighting] = field(default_factory=list)
+    candidates: int = 0  # (light, camera) pairs where the nominal light projects inside the image
+    frames_read: int = 0
+    unconfirmed: int = (
+        0  # (light, camera) pairs with round discs, but only touching the mask in too few groups
+    )
+    read_errors: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -28,134 +58,266 @@ class BulbEstimate:
     """Rig-frame light positions (metres) and how each was obtained."""
 
     positions: np.ndarray  # (L, 3) stage rig frame
-    cameras_per_light: dict[int, list[str]] = field(
-        default_factory=dict
-    )  # light index -> cameras that saw it
-    shift_mm: dict[int, float] = field(default_factory=dict)  # light index -> distance from nominal
-    frames_read: int = 0
+    cameras_per_light: dict[int, list[str]] = field(default_factory=dict)  # light -> cameras that saw it
+    shift_mm: dict[int, float] = field(default_factory=dict)  # light -> distance from nominal
+
+
+def processed_intrinsics(
+    stage: Stage, intrinsics: dict[str, np.ndarray] | None = None
+) -> dict[str, np.ndarray]:
+    """Camera id -> processed-resolution K, from the raw-resolution `intrinsics` where given, else stage.yaml's."""
+    out = {}
+    for cam in stage.cameras:
+        K = np.array(intrinsics.get(cam.id, cam.K) if intrinsics else cam.K, dtype=np.float64)
+        K[:2] /= DOWNSCALE
+        out[cam.id] = K
+    return out
+
+
+@dataclass(frozen=True)
+class BulbDisc:
+    """A clipped blob of one processed frame: coverage-weighted centre (pixel centres at i + 0.5), area
+    (pixels), roundness (minor / major second moment) and whether it touches the dilated object mask."""
+
+    u: float
+    v: float
+    area: float
+    roundness: float
+    touches_mask: bool
 
 
 def detect_bulb(
-    rgb: np.ndarray, saturated: np.ndarray, mask: np.ndarray, saturation: float, min_area: int = 2
-) -> tuple[float, float, float] | None:
-    """Centre (u, v) in pixel coordinates (pixel centres at i + 0.5) and area (pixels) of the largest whole clipped
-    blob outside the (dilated) object mask, or None. The coverage of each processed pixel is recovered from its
-    area-averaged value between the local background and the clip level, so the centre is sub-pixel."""
+    rgb: np.ndarray,
+    saturated: np.ndarray,
+    mask: np.ndarray,
+    saturation: float,
+    min_area: int = 2,
+    near: tuple[float, float] | None = None,
+    max_offset_px: float = 20.0,
+    min_roundness: float = 0.95,
+) -> BulbDisc | None:
+    """The whole (round, not cut by the image border) clipped blob nearest `near` (within `max_offset_px`), or
+    the largest one without `near`; None if there is none.
+
+    The coverage of each processed pixel is recovered from its area-averaged value between the local background
+    and the clip level, so the centre is sub-pixel. A bulb partly hidden behind the object is a disc with a
+    piece cut off, and its second moments are no longer isotropic: `min_roundness` rejects it (whole discs
+    measure >= 0.97, one with 1% of its area hidden 0.93). Touching the (dilated) object `mask` is only flagged:
+    a segmentation can swallow a bulb and its glow next to the object, so the caller decides.
+    """
     h, w = saturated.shape
+    mask = np.asarray(mask, bool)
     near_object = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-    blobs = saturated & ~mask
-    if not blobs.any():
+    if not saturated.any():
         return None
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(blobs.astype(np.uint8), connectivity=8)
-    best = None
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(saturated.astype(np.uint8), connectivity=8)
+    lum = rgb @ LUMA
+    top = float(saturation)
+    best: tuple[float, BulbDisc] | None = None
     for i in range(1, n):
         x, y, bw, bh, area = stats[i]
         if area < min_area:
             continue
         if x == 0 or y == 0 or x + bw >= w or y + bh >= h:
             continue  # cut by the image border
-        if near_object[labels == i].any():
-            continue  # touching the silhouette: possibly partly hidden behind the object
-        if best is None or area > best[1]:
-            best = (i, area)
-    if best is None:
-        return None
-    comp = labels == best[0]
-    ring = (cv2.dilate(comp.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0) & ~comp & ~saturated & ~mask
-    lum = rgb @ LUMA
-    bg = float(np.median(lum[ring])) if ring.any() else 0.0
-    top = float(saturation)
-    if top <= bg:
-        return None
-    cover = np.clip((lum - bg) / (top - bg), 0.0, 1.0) * comp
-    total = float(cover.sum())
-    if total <= 0:
-        return None
-    rows, cols = np.nonzero(comp)
-    wts = cover[rows, cols]
-    u = float((wts * (cols + 0.5)).sum() / total)
-    v = float((wts * (rows + 0.5)).sum() / total)
-    return u, v, total
+        comp = labels == i
+        ring = (cv2.dilate(comp.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0) & ~saturated
+        outside = ring & ~mask
+        ring = outside if outside.sum() >= 8 else ring
+        bg = float(np.median(lum[ring])) if ring.any() else 0.0
+        if top <= bg:
+            continue
+        rows, cols = np.nonzero(comp)
+        wts = np.clip((lum[rows, cols] - bg) / (top - bg), 0.0, 1.0)
+        total = float(wts.sum())
+        if total <= 0:
+            continue
+        xy = np.stack([cols + 0.5, rows + 0.5], axis=1)
+        centre = (wts[:, None] * xy).sum(0) / total
+        d = xy - centre
+        cov = (wts[:, None, None] * d[:, :, None] * d[:, None, :]).sum(0) / total + np.eye(2) / 12.0
+        ev = np.linalg.eigvalsh(cov)
+        roundness = float(ev[0] / ev[1])
+        if roundness < min_roundness:
+            continue
+        disc = BulbDisc(float(centre[0]), float(centre[1]), total, roundness, bool(near_object[comp].any()))
+        if near is not None:
+            dist = float(np.hypot(disc.u - near[0], disc.v - near[1]))
+            if dist > max_offset_px:
+                continue
+            score = dist
+        else:
+            score = -total
+        if best is None or score < best[0]:
+            best = (score, disc)
+    return best[1] if best is not None else None
 
 
-def observe_lights(
+def combine_discs(
+    light: int, camera: str, discs: dict[str, BulbDisc], min_groups_touching: int = 3, area_tol: float = 0.03
+) -> BulbSighting | None:
+    """One sighting from the round discs of the groups' frames of a (light, camera), or None.
+
+    The bulb is rig-locked, so its disc is the same in every group where nothing hides it, while the object
+    turns: the whole disc has the largest area, and the groups within `area_tol` of it are kept. If any of them
+    keeps clear of the object mask, those give the centre (median); otherwise (the segmentation took the bulb
+    or its glow as foreground) at least `min_groups_touching` groups, i.e. different silhouettes, must agree.
+    """
+    if not discs:
+        return None
+    top = max(d.area for d in discs.values())
+    keep = {g: d for g, d in discs.items() if d.area >= (1.0 - area_tol) * top}
+    clear = {g: d for g, d in keep.items() if not d.touches_mask}
+    use = clear or (keep if len(keep) >= min_groups_touching else {})
+    if not use:
+        return None
+    u = float(np.median([d.u for d in use.values()]))
+    v = float(np.median([d.v for d in use.values()]))
+    return BulbSighting(light, camera, (u, v), sorted(use), touching_mask=not clear)
+
+
+def find_bulbs(
     work: WorkDir,
     capture: Capture,
     cam_from_rig: dict[str, tuple[np.ndarray, np.ndarray]],
     nominal_rig: np.ndarray,
-    prior_sigma_m: float = 0.003,
-    pixel_sigma: float = 0.25,
-    margin_px: float = 2.0,
     intrinsics: dict[str, np.ndarray] | None = None,
-) -> BulbEstimate:
-    """Rig-frame light positions from the bulbs seen in the processed frames (see the module doc).
+    margin_px: float = 2.0,
+    max_offset_px: float = 20.0,
+    min_groups_touching: int = 3,
+) -> BulbSightings:
+    """Every (light, camera) whose bulb shows as a whole clipped disc in the processed frames (see the module doc).
 
-    `cam_from_rig`: camera id -> stage-rig-to-camera (R, t) in metres; `nominal_rig`: (L, 3) nominal positions.
-    `intrinsics`: camera id -> raw-resolution K (default: stage.yaml's); distortion is ignored. Only frames
-    where a light's nominal position projects inside a camera's image are read.
+    `cam_from_rig`: camera id -> stage-rig-to-camera (R, t) in metres (only used to find where to look);
+    `nominal_rig`: (L, 3) nominal positions, in the order of `capture.stage.lights`; `intrinsics`: camera id ->
+    raw-resolution K (default: stage.yaml's). Only frames where a light's nominal position projects inside a
+    camera's image are read; a disc farther than `max_offset_px` (processed pixels) from there is not the bulb.
+    See `combine_discs` for how the groups' discs make one sighting.
     """
     from lightstage.preprocess.processed import read_processed
 
     stage = capture.stage
     w, h = stage.width // DOWNSCALE, stage.height // DOWNSCALE
-    positions = np.array(nominal_rig, dtype=np.float64, copy=True)
-    est = BulbEstimate(positions)
+    out = BulbSightings()
+    K_proc = processed_intrinsics(stage, intrinsics)
     masks: dict[tuple[str, str], np.ndarray] = {}
     for li, light in enumerate(stage.lights):
-        p0 = positions[li]
-        rays = []
+        p0 = np.asarray(nominal_rig[li], np.float64)
         for cam in stage.cameras:
             if cam.id not in cam_from_rig:
                 continue
             R, t = cam_from_rig[cam.id]
-            K = np.array(intrinsics.get(cam.id, cam.K) if intrinsics else cam.K, dtype=np.float64)
-            K[:2] /= DOWNSCALE
+            K = K_proc[cam.id]
             pc = R @ p0 + t
             if pc[2] <= 0:
                 continue
             u, v = (K @ pc)[:2] / pc[2]
             if not (margin_px <= u <= w - margin_px and margin_px <= v <= h - margin_px):
                 continue
-            found = []
+            out.candidates += 1
+            found: dict[str, BulbDisc] = {}
             for g in stage.group_names:
                 path = work.frame(FrameId(g, cam.id, light.index))
                 if not path.is_file():
                     continue
                 try:
                     rgb, sat = read_processed(path, (w, h))
-                except LightstageError:
+                except LightstageError as e:
+                    out.read_errors.append(str(e))
                     continue
-                est.frames_read += 1
+                out.frames_read += 1
                 key = (g, cam.id)
                 if key not in masks:
                     m = cv2.imread(str(work.mask(ViewId(g, cam.id))), cv2.IMREAD_GRAYSCALE)
                     masks[key] = m > 127 if m is not None else np.zeros((h, w), bool)
-                hit = detect_bulb(rgb, sat, masks[key], stage.saturation)
-                if hit is not None:
-                    found.append(hit)
-            if not found:
+                disc = detect_bulb(
+                    rgb, sat, masks[key], stage.saturation, near=(u, v), max_offset_px=max_offset_px
+                )
+                if disc is not None:
+                    found[g] = disc
+            sighting = combine_discs(li, cam.id, found, min_groups_touching)
+            if sighting is None:
+                out.unconfirmed += bool(found)
                 continue
-            # The whole disc has the largest area; keep the groups that show it so and take the median centre.
-            areas = np.array([f[2] for f in found])
-            keep = [f for f in found if f[2] >= 0.9 * areas.max()]
-            u_m = float(np.median([f[0] for f in keep]))
-            v_m = float(np.median([f[1] for f in keep]))
-            if np.hypot(u_m - u, v_m - v) > 20.0:
-                continue  # not this light's bulb (the nominal position is a few pixels off at most)
-            centre = -R.T @ t
-            d = R.T @ np.linalg.solve(K, np.array([u_m, v_m, 1.0]))
-            d /= np.linalg.norm(d)
-            depth = float(np.linalg.norm(p0 - centre))
-            rays.append((cam.id, centre, d, depth * pixel_sigma / K[0, 0]))
-        if not rays:
+            out.sightings.append(sighting)
+    return out
+
+
+def _normal_equations(
+    sightings: list[BulbSighting],
+    cam_from_rig: dict[str, tuple[np.ndarray, np.ndarray]],
+    nominal_rig: np.ndarray,
+    K_proc: dict[str, np.ndarray],
+    pixel_sigma: float,
+) -> dict[int, tuple[np.ndarray, np.ndarray, list[str]]]:
+    """Per light: A = sum P_i / s_i^2 and b = sum P_i c_i / s_i^2 over its rays (P_i projects across ray i
+    from camera centre c_i; s_i = depth * pixel_sigma / fx, metres), and the cameras that saw it."""
+    out: dict[int, tuple[np.ndarray, np.ndarray, list[str]]] = {}
+    for s in sightings:
+        if s.camera not in cam_from_rig:
             continue
-        A = np.eye(3) / prior_sigma_m**2
-        b = p0 / prior_sigma_m**2
-        for _, c, d, sigma in rays:
-            P = np.eye(3) - np.outer(d, d)
-            A += P / sigma**2
-            b += P @ c / sigma**2
-        positions[li] = np.linalg.solve(A, b)
-        est.cameras_per_light[light.index] = [r[0] for r in rays]
-        est.shift_mm[light.index] = float(1000.0 * np.linalg.norm(positions[li] - p0))
+        R, t = (np.asarray(x, np.float64) for x in cam_from_rig[s.camera])
+        K = np.asarray(K_proc[s.camera], np.float64)
+        centre = -R.T @ t
+        d = R.T @ np.linalg.solve(K, np.array([s.uv[0], s.uv[1], 1.0]))
+        d /= np.linalg.norm(d)
+        sigma = float(np.linalg.norm(nominal_rig[s.light] - centre)) * pixel_sigma / K[0, 0]
+        P = (np.eye(3) - np.outer(d, d)) / sigma**2
+        A, b, cams = out.get(s.light, (np.zeros((3, 3)), np.zeros(3), []))
+        out[s.light] = (A + P, b + P @ centre, [*cams, s.camera])
+    return out
+
+
+def locate_lights(
+    sightings: list[BulbSighting],
+    cam_from_rig: dict[str, tuple[np.ndarray, np.ndarray]],
+    nominal_rig: np.ndarray,
+    K_proc: dict[str, np.ndarray],
+    prior_sigma_m: float = 0.003,
+    pixel_sigma: float = 0.1,
+) -> BulbEstimate:
+    """Rig-frame light positions: each observed light at the least-squares point of its rays (stage rig frame of
+    `cam_from_rig`, metres; `K_proc`: processed-resolution K per camera) with its nominal position as prior;
+    unobserved lights at their nominal positions."""
+    nominal_rig = np.asarray(nominal_rig, np.float64)
+    est = BulbEstimate(nominal_rig.copy())
+    for li, (A, b, cams) in sorted(
+        _normal_equations(sightings, cam_from_rig, nominal_rig, K_proc, pixel_sigma).items()
+    ):
+        w = 1.0 / prior_sigma_m**2
+        est.positions[li] = np.linalg.solve(A + w * np.eye(3), b + w * nominal_rig[li])
+        est.cameras_per_light[li] = cams
+        est.shift_mm[li] = float(1000.0 * np.linalg.norm(est.positions[li] - nominal_rig[li]))
     return est
+
+
+def gauge_points(
+    sightings: list[BulbSighting],
+    cam_from_rig: dict[str, tuple[np.ndarray, np.ndarray]],
+    nominal_rig: np.ndarray,
+    K_proc: dict[str, np.ndarray],
+    mount_sigma_m: float = 0.003,
+    pixel_sigma: float = 0.1,
+) -> tuple[list[int], np.ndarray, np.ndarray, np.ndarray]:
+    """Observed lights as extra points of the gauge fit: (lights, points in the frame of `cam_from_rig`, their
+    nominal positions, (N, 3, 3) square-root information matrices in metres^-1).
+
+    A light's point is the least-squares point of its rays (for a single ray: the ray's point closest to the
+    nominal position). The nominal position misses the true one by the mounting tolerance `mount_sigma_m` per
+    axis, and the rays fix the true one with information A, so the residual point - nominal has information
+    A (I + sigma^2 A)^-1: isotropic for a triangulated light, zero along the ray of a light seen once.
+    """
+    nominal_rig = np.asarray(nominal_rig, np.float64)
+    lights, pts, nom, sqrt_info = [], [], [], []
+    eqs = _normal_equations(sightings, cam_from_rig, nominal_rig, K_proc, pixel_sigma)
+    for li, (A, b, _) in sorted(eqs.items()):
+        eps = 1e-6 * np.trace(A)  # fixes the along-ray coordinate of a single ray at the nominal position
+        pts.append(np.linalg.solve(A + eps * np.eye(3), b + eps * nominal_rig[li]))
+        info = A @ np.linalg.inv(np.eye(3) + mount_sigma_m**2 * A)
+        vals, vecs = np.linalg.eigh(0.5 * (info + info.T))
+        sqrt_info.append(vecs @ np.diag(np.sqrt(np.clip(vals, 0.0, None))) @ vecs.T)
+        nom.append(nominal_rig[li])
+        lights.append(li)
+    if not lights:
+        return [], np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3))
+    return lights, np.stack(pts), np.stack(nom), np.stack(sqrt_info)

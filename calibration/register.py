@@ -93,8 +93,10 @@ def fit_gauge(
 
     Points `src` (N, 3) should land on `dst` (position error `position_sigma` per axis, metres after mapping);
     world-to-camera rotations `src_rot` (N, 3, 3), which become src_rot R^T, should match `dst_rot` (per-axis
-    error `rotation_sigma_deg`); optional extra points (e.g. observed lights) likewise with `extra_sigma`.
-    Starts from the Umeyama fit of the points; with positions alone it is that fit.
+    error `rotation_sigma_deg`); optional extra points (e.g. observed lights) likewise with `extra_sigma`: one
+    sigma, one per point (N,), or per-point (N, 3, 3) square-root information matrices L (residual L (S x - y),
+    for points known only across a ray). Starts from the Umeyama fit of the points; with positions alone it is
+    that fit.
     """
     from scipy.optimize import least_squares
 
@@ -107,7 +109,15 @@ def fit_gauge(
     sig_r = np.deg2rad(rotation_sigma_deg)
     if use_extra:
         src_extra, dst_extra = np.asarray(src_extra, float), np.asarray(dst_extra, float)
-        w_extra = 1.0 / np.broadcast_to(np.asarray(extra_sigma, float), (len(src_extra),))[:, None]
+        sig = np.asarray(extra_sigma, float)
+        if sig.ndim == 3:
+            if sig.shape != (len(src_extra), 3, 3):
+                raise LightstageError(
+                    f"fit_gauge: extra_sigma has shape {sig.shape}, expected ({len(src_extra)}, 3, 3)"
+                )
+            L_extra = sig
+        else:
+            L_extra = np.eye(3) / np.broadcast_to(sig, (len(src_extra),))[:, None, None]
 
     def similarity(x: np.ndarray) -> Similarity:
         return Similarity(
@@ -121,7 +131,7 @@ def fit_gauge(
             err = Rotation.from_matrix(np.asarray(src_rot) @ S.R.T @ np.transpose(dst_rot, (0, 2, 1)))
             out.append(err.as_rotvec().ravel() / sig_r)
         if use_extra:
-            out.append(((S.apply(src_extra) - dst_extra) * w_extra).ravel())
+            out.append(np.einsum("nij,nj->ni", L_extra, S.apply(src_extra) - dst_extra).ravel())
         return np.concatenate(out)
 
     sol = least_squares(residuals, np.zeros(7), x_scale=np.r_[np.full(3, 1e-3), 1e-3, np.full(3, 1e-3)])
@@ -245,8 +255,8 @@ def register_rig(
     recovered rig for group g; `nominal_centres[c]` = nominal rig-frame camera centre (metres).
     `group_order[0]` is the reference group. With `nominal_rotations` (camera id -> nominal rig-frame
     world-to-camera rotation) and `rotation_sigma_deg` > 0 the gauge also fits the camera orientations
-    (`fit_gauge`); `extra_points` = (recovered rig-frame points, nominal positions, sigmas in metres) adds
-    further nominal points (observed lights).
+    (`fit_gauge`); `extra_points` = (recovered rig-frame points, nominal positions, sigmas in metres or
+    square-root information matrices, see `fit_gauge`) adds further nominal points (observed lights).
     """
     cams = [c for c in nominal_centres if c in sensor_from_rig]
     if len(cams) < 3:

@@ -59,7 +59,9 @@ class CalibrateConfig:
     # Lights seen directly by cameras (clipped bulbs in the processed frames) are moved onto their rays /
     # triangulated, with the nominal position as prior (per-axis sigma); the others keep nominal positions.
     observe_bulbs: bool = True
-    light_prior_sigma_mm: float = 3.0
+    light_prior_sigma_mm: float = 3.0  # also the lights' mounting tolerance when they join the gauge
+    bulbs_in_gauge: bool = False  # observed lights join the camera centres/orientations in the gauge fit
+    bulb_pixel_sigma: float = 0.1  # disc-centre + camera-direction uncertainty, processed pixels
     peak_threshold: float = 0.004
     ransac_max_error_px: float = 2.0
     num_threads: int = 2
@@ -101,10 +103,11 @@ class CalibrateConfig:
         if (
             cfg.gauge_position_sigma_mm <= 0
             or cfg.light_prior_sigma_mm <= 0
+            or cfg.bulb_pixel_sigma <= 0
             or cfg.gauge_rotation_sigma_deg < 0
         ):
             raise LightstageError(
-                "calibration config: gauge_position_sigma_mm and light_prior_sigma_mm must be > 0, "
+                "calibration config: gauge_position_sigma_mm, light_prior_sigma_mm and bulb_pixel_sigma must be > 0, "
                 "gauge_rotation_sigma_deg >= 0"
             )
         if not 0.0 < cfg.min_registered_fraction <= 1.0:
@@ -160,7 +163,7 @@ def _light_floor(capture: Capture, truth: Calibration) -> Calibration:
 def _sfm_calibration(
     work: WorkDir, capture: Capture, config: CalibrateConfig, intr: dict, log, progress: bool = False
 ) -> tuple[Calibration, dict[str, Any], Any]:
-    from lightstage.calibration.register import register_rig
+    from lightstage.calibration.register import Registration, register_rig
     from lightstage.calibration.sfm import SfmOptions, run_sfm
     from lightstage.calibration.sfm_images import build_sfm_images
 
@@ -249,21 +252,95 @@ def _sfm_calibration(
             f"(views: {', '.join(map(str, result.registered))})"
         )
     nominal_centres = {c.id: camera_center(c.R, c.t) for c in stage.cameras}
-    reg = register_rig(
-        result.sensor_from_rig,
-        result.rig_from_world,
-        nominal_centres,
-        stage.group_names,
-        reference_yaw_deg=stage.groups[0].yaw_deg,
-        nominal_direction=np.asarray(stage.axis.direction),
-        nominal_rotations={c.id: c.R for c in stage.cameras},
-        position_sigma_m=config.gauge_position_sigma_mm / 1000.0,
-        rotation_sigma_deg=config.gauge_rotation_sigma_deg,
-    )
+
+    def register(extra_points: tuple | None = None) -> Registration:
+        """The gauge fit and turntable registration, optionally with extra nominal points."""
+        return register_rig(
+            result.sensor_from_rig,
+            result.rig_from_world,
+            nominal_centres,
+            stage.group_names,
+            reference_yaw_deg=stage.groups[0].yaw_deg,
+            nominal_direction=np.asarray(stage.axis.direction),
+            nominal_rotations={c.id: c.R for c in stage.cameras},
+            position_sigma_m=config.gauge_position_sigma_mm / 1000.0,
+            rotation_sigma_deg=config.gauge_rotation_sigma_deg,
+            extra_points=extra_points,
+        )
+
+    reg = register()
     if reg.rig_fit_rms_m * 1000.0 > config.max_rig_fit_rms_mm:
         raise LightstageError(
             f"SfM rig does not match the nominal rig of stage.yaml: RMS camera-centre misfit "
             f"{reg.rig_fit_rms_m * 1000:.1f} mm > {config.max_rig_fit_rms_mm} mm"
+        )
+    p_rig = stage.light_positions_rig()
+    gauge_lights: list[int] = []
+    if config.observe_bulbs:
+        from lightstage.calibration.bulbs import (
+            find_bulbs,
+            gauge_points,
+            locate_lights,
+            processed_intrinsics,
+        )
+
+        intr_K = {c: K for c, (K, _) in intr.items()}
+        found = find_bulbs(work, capture, {c: (T.R, T.t) for c, T in reg.cam_from_rig.items()}, p_rig, intr_K)
+        K_proc = processed_intrinsics(stage, intr_K)
+        light_sigma = config.light_prior_sigma_mm / 1000.0
+        if config.bulbs_in_gauge and found.sightings:
+            # Observed lights are nominal points of the rig too: refit the gauge with them (their rays, found in
+            # the first fit's frame, are mapped back to the SfM rig frame the gauge starts from).
+            gauge_lights, pts, nom, sqrt_info = gauge_points(
+                found.sightings,
+                {c: (T.R, T.t) for c, T in reg.cam_from_rig.items()},
+                p_rig,
+                K_proc,
+                mount_sigma_m=light_sigma,
+                pixel_sigma=config.bulb_pixel_sigma,
+            )
+            reg = register((reg.rig_similarity.inverse().apply(pts), nom, sqrt_info))
+        bulbs = locate_lights(
+            found.sightings,
+            {c: (T.R, T.t) for c, T in reg.cam_from_rig.items()},
+            p_rig,
+            K_proc,
+            prior_sigma_m=light_sigma,
+            pixel_sigma=config.bulb_pixel_sigma,
+        )
+        p_rig = bulbs.positions
+        stats["lights"] = {
+            "num_lights": len(stage.lights),
+            "num_observed": len(bulbs.cameras_per_light),
+            "num_triangulated": sum(len(c) >= 2 for c in bulbs.cameras_per_light.values()),
+            "num_in_gauge": len(gauge_lights),
+            "candidate_light_cameras": found.candidates,
+            "frames_read": found.frames_read,
+            "unconfirmed_light_cameras": found.unconfirmed,
+            "read_errors": found.read_errors[:20],
+            "observed": {
+                str(i): {"cameras": cams, "shift_from_nominal_mm": round(bulbs.shift_mm[i], 3)}
+                for i, cams in bulbs.cameras_per_light.items()
+            },
+            "sightings": [
+                {
+                    "light": s.light,
+                    "camera": s.camera,
+                    "uv_processed": [round(s.uv[0], 3), round(s.uv[1], 3)],
+                    "groups": s.groups,
+                    "touching_mask": s.touching_mask,
+                }
+                for s in found.sightings
+            ],
+        }
+        if found.read_errors:
+            stats.setdefault("warnings", []).append(
+                f"bulbs: {len(found.read_errors)} processed frames unreadable (first: {found.read_errors[0]})"
+            )
+        log(
+            f"lights: {len(bulbs.cameras_per_light)}/{len(stage.lights)} seen directly by a camera "
+            f"({stats['lights']['num_triangulated']} by two or more, {len(gauge_lights)} used in the gauge); "
+            "the others at nominal rig positions"
         )
     calib_views = {}
     for v in result.registered:
@@ -271,33 +348,6 @@ def _sfm_calibration(
         K, dist = intr[v.camera]
         calib_views[v] = ViewCalibration(
             np.asarray(K, float), R, t, stage.width, stage.height, np.asarray(dist, float)
-        )
-    p_rig = stage.light_positions_rig()
-    if config.observe_bulbs:
-        from lightstage.calibration.bulbs import observe_lights
-
-        bulbs = observe_lights(
-            work,
-            capture,
-            {c: (T.R, T.t) for c, T in reg.cam_from_rig.items()},
-            p_rig,
-            prior_sigma_m=config.light_prior_sigma_mm / 1000.0,
-            intrinsics={c: K for c, (K, _) in intr.items()},
-        )
-        p_rig = bulbs.positions
-        stats["lights"] = {
-            "num_lights": len(stage.lights),
-            "num_observed": len(bulbs.cameras_per_light),
-            "num_triangulated": sum(len(c) >= 2 for c in bulbs.cameras_per_light.values()),
-            "frames_read": bulbs.frames_read,
-            "observed": {
-                str(i): {"cameras": cams, "shift_from_nominal_mm": round(bulbs.shift_mm[i], 3)}
-                for i, cams in bulbs.cameras_per_light.items()
-            },
-        }
-        log(
-            f"lights: {len(bulbs.cameras_per_light)}/{len(stage.lights)} seen directly by a camera "
-            f"({stats['lights']['num_triangulated']} by two or more); the others at nominal rig positions"
         )
     calib = Calibration(
         method="sfm",
@@ -315,8 +365,13 @@ def _sfm_calibration(
         },
         "gauge": "world = stage rig frame of group "
         f"{stage.group_names[0]} (similarity fitting the recovered rig camera centres and orientations to the "
-        f"nominal ones, sigma {config.gauge_position_sigma_mm} mm / {config.gauge_rotation_sigma_deg} deg), "
-        "placed at that group's nominal yaw about the fitted axis",
+        f"nominal ones, sigma {config.gauge_position_sigma_mm} mm / {config.gauge_rotation_sigma_deg} deg"
+        + (
+            f", and {len(gauge_lights)} bulb-observed lights to theirs, sigma {config.light_prior_sigma_mm} mm"
+            if gauge_lights
+            else ""
+        )
+        + "), placed at that group's nominal yaw about the fitted axis",
     }
     points = colors = None
     rec = result.reconstruction
@@ -379,6 +434,7 @@ def run_calibrate(
             stats: dict[str, Any] = {"num_views": len(calib.views), "num_registered": len(calib.views)}
         else:
             calib, stats, (points, colors) = _sfm_calibration(work, capture, config, intr, log, progress)
+        report["warnings"].extend(stats.pop("warnings", []))
         report["sfm" if config.method == "sfm" else "nominal"] = stats
         calib.save(work.calibration)
         write_colmap_model(calib, work.calibration_dir / "colmap", points, colors)

@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 from lightstage.calibration.register import Similarity, fit_gauge, fit_turntable, register_rig, umeyama
 from lightstage.cameras import camera_center
 from lightstage.capture.presets import make_stage
+from lightstage.errors import LightstageError
 from lightstage.rig import TurntableAxis, camera_pose_in_world, group_transform
 
 
@@ -125,3 +126,49 @@ def test_gauge_with_orientations_beats_centres_alone():
     est = fit_gauge(S.apply(nominal_c), nominal_c, nominal_R @ S.R.T, nominal_R)
     assert est.scale == pytest.approx(1.0 / S.scale, rel=1e-9)
     np.testing.assert_allclose(est.R, S.R.T, atol=1e-9)
+
+
+def test_gauge_with_observed_lights():
+    """Observed lights as extra nominal points: exact data gives the exact similarity, also with a rank-2
+    (across-the-ray) weight whose point may slide along its ray; with mounting errors the lights make the
+    world frame better on average."""
+    stage = make_stage("t", num_cameras=20, num_lights=40, width=512, height=340, camera_distance=1.1)
+    nominal_c = np.stack([camera_center(c.R, c.t) for c in stage.cameras])
+    nominal_R = np.stack([c.R for c in stage.cameras])
+    nominal_l = stage.light_positions_rig()[:12]
+    S = _random_similarity(np.random.default_rng(5))
+    d = nominal_l - nominal_c[0]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    L = np.stack([(np.eye(3) - np.outer(x, x)) / 0.003 for x in d])  # seen by cam00 only
+    slid = nominal_l + 0.2 * d  # anywhere on the ray
+    est = fit_gauge(
+        S.apply(nominal_c),
+        nominal_c,
+        nominal_R @ S.R.T,
+        nominal_R,
+        src_extra=S.apply(slid),
+        dst_extra=nominal_l,
+        extra_sigma=L,
+    )
+    assert est.scale == pytest.approx(1.0 / S.scale, rel=1e-9)
+    np.testing.assert_allclose(est.R, S.R.T, atol=1e-9)
+    with pytest.raises(LightstageError, match="extra_sigma"):
+        fit_gauge(nominal_c, nominal_c, src_extra=nominal_l, dst_extra=nominal_l, extra_sigma=L[:3])
+
+    err_without, err_with = [], []
+    for seed in range(12):
+        rng = np.random.default_rng(seed)
+        true_c = nominal_c + rng.normal(0, 0.003, nominal_c.shape)
+        true_R = np.stack(
+            [Rotation.from_rotvec(rng.normal(0, np.deg2rad(0.2), 3)).as_matrix() @ R for R in nominal_R]
+        )
+        true_l = nominal_l + rng.normal(0, 0.003, nominal_l.shape)
+        S = _random_similarity(rng)
+        src = (S.apply(true_c), nominal_c, true_R @ S.R.T, nominal_R)
+        for extra, errs in (
+            ({}, err_without),
+            ({"src_extra": S.apply(true_l), "dst_extra": nominal_l}, err_with),
+        ):
+            fit = fit_gauge(*src, **extra, extra_sigma=0.003)
+            errs.append(np.linalg.norm(fit.apply(S.apply(true_c)) - true_c, axis=1).mean())
+    assert np.mean(err_with) < np.mean(err_without)
