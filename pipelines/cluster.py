@@ -30,11 +30,12 @@ _SINGLE_THREAD_ENV = {
 }
 
 # glibc malloc settings for worker processes, which must be in the environment before the process starts
-# (dask's `pre-spawn-environ`). Dask sets MALLOC_TRIM_THRESHOLD_, which also freezes glibc's mmap threshold
-# at 128 KiB, so every multi-MB band buffer of the per-frame work became a fresh mmap that page-faults on
-# first touch: +30% CPU per raw frame in preprocess (docs/benchmarks.md). Serving blocks up to 32 MiB from
-# the heap removes that cost; the trim threshold (memory handed back to the OS) is kept as dask sets it.
-_WORKER_MALLOC_ENV = {"MALLOC_MMAP_THRESHOLD_": str(32 << 20)}
+# (dask's `pre-spawn-environ`). Dask sets MALLOC_TRIM_THRESHOLD_=64 KiB, which (1) freezes glibc's mmap
+# threshold at 128 KiB, so every multi-MB band buffer of the per-frame work became a fresh mmap, and (2) hands
+# the heap back to the OS after every free, so the next buffer page-faults again: each cost preprocess ~20% more
+# CPU per raw frame (docs/benchmarks.md). Blocks up to 32 MiB come from the heap and up to 64 MiB of free heap
+# is kept per worker (dask still sees it as unmanaged memory, well inside the worker's budget).
+_WORKER_MALLOC_ENV = {"MALLOC_MMAP_THRESHOLD_": str(32 << 20), "MALLOC_TRIM_THRESHOLD_": str(64 << 20)}
 
 
 def worker_spawn_environ() -> dict[str, Any]:
