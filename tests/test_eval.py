@@ -130,8 +130,15 @@ def test_cli_train_and_eval_on_dataset_shards(tmp_path):
     report = json.loads(work.report("train").read_text())
     assert report["steps"] == 3 and np.isfinite(report["final_loss"])
     assert list((work.train_dir / "previews").glob("*.png"))
-    assert main(["train", *args, "--steps", "5"]) == 0  # resumes from step 3
-    assert json.loads(work.report("train").read_text())["steps"] == 5
+    assert main(["train", *args, "--steps", "6", "--stop-at", "4", "--eval-every", "1"]) == 0  # resumes at 3
+    assert json.loads(work.report("train").read_text())["steps"] == 4  # stopped early, checkpointed
+    assert main(["train", *args, "--steps", "6", "--eval-every", "1"]) == 0  # resumes from step 4
+    report = json.loads(work.report("train").read_text())
+    assert report["steps"] == 6 and report["train_seconds"] > 0
+    evals = json.loads((work.train_dir / "log.json").read_text())["eval"]
+    assert [e["step"] for e in evals] == [2, 4, 5, 6]  # every 2 up to 3, then every step: kept over resumes
+    times = [e["train_seconds"] for e in evals]
+    assert times == sorted(times) and times[0] > 0  # cumulative optimiser time, for time-to-PSNR
     assert main(["eval", str(work.root), "--device", "cpu", "--no-progress"]) == 0
     ev = json.loads(work.report("eval").read_text())
     assert ev["count"] == 2 and ev["lpips"] == "unavailable"

@@ -14,6 +14,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default="paper", help="paper | fast | tiny | a YAML file (default: paper)")
     p.add_argument("--steps", type=int, default=None, help="total optimiser steps (overrides the config)")
     p.add_argument("--device", default="auto", help="cpu | cuda | auto (default)")
+    p.add_argument(
+        "--stop-at",
+        type=int,
+        default=None,
+        help="end this run at this step with a checkpoint; rerun to continue (splits time-limited jobs)",
+    )
+    p.add_argument(
+        "--eval-every", type=int, default=None, help="steps between test-PSNR previews (overrides the config)"
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_train)
 
@@ -36,11 +45,26 @@ def _train(args: argparse.Namespace) -> int:
     from lightstage.training.run import run_train
     from lightstage.workdir import WorkDir
 
-    overrides = {"optim": {"steps": args.steps}} if args.steps is not None else None
-    if args.steps is not None and args.steps < 1:
-        raise LightstageError("--steps must be >= 1")
-    config = load_config(args.config, overrides)
-    summary = run_train(WorkDir.at(args.work), config, progress=not args.no_progress, device=args.device)
+    overrides: dict = {}
+    for flag, value, least in (
+        ("--steps", args.steps, 1),
+        ("--stop-at", args.stop_at, 1),
+        ("--eval-every", args.eval_every, 0),
+    ):
+        if value is not None and value < least:
+            raise LightstageError(f"{flag} must be >= {least}")
+    if args.steps is not None:
+        overrides["optim"] = {"steps": args.steps}
+    if args.eval_every is not None:
+        overrides["eval"] = {"every": args.eval_every}
+    config = load_config(args.config, overrides or None)
+    summary = run_train(
+        WorkDir.at(args.work),
+        config,
+        progress=not args.no_progress,
+        device=args.device,
+        stop_at=args.stop_at,
+    )
     print(json.dumps(summary))
     return 0
 

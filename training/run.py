@@ -38,10 +38,17 @@ def init_distributed(device: torch.device) -> bool:
 
 
 def run_train(
-    work: WorkDir, config: TrainConfig, client: Any = None, progress: bool = True, device: str | None = None
+    work: WorkDir,
+    config: TrainConfig,
+    client: Any = None,
+    progress: bool = True,
+    device: str | None = None,
+    stop_at: int | None = None,
 ) -> dict[str, Any]:
     """Train from WORK/shards into WORK/train (resuming from its checkpoint); rank 0 writes reports/train.json.
-    `client` is accepted for the stage API and unused (training is one GPU job, multi-GPU through torchrun)."""
+    `stop_at` ends this run at that step (checkpointed; a later run resumes to `optim.steps`), so a long training
+    can be split over time-limited jobs. `client` is accepted for the stage API and unused (training is one GPU
+    job, multi-GPU through torchrun)."""
     from lightstage.training.data_real import ShardSource, iter_test_images
     from lightstage.training.trainer import distributed, fit
 
@@ -58,7 +65,15 @@ def run_train(
             tests = [img for _, img in zip(range(config.eval.images), iter_test_images(work), strict=False)]
         t0 = time.perf_counter()
         summary = fit(
-            config, source, work.train_dir, centre, scale, device=dev, test_images=tests, progress=progress
+            config,
+            source,
+            work.train_dir,
+            centre,
+            scale,
+            device=dev,
+            test_images=tests,
+            progress=progress,
+            stop_at=stop_at,
         )
         if rank == 0:
             report = {

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import json
 import math
 import random
 import time
@@ -115,7 +116,7 @@ def fit(
     use_scaler = device.type == "cuda" and ocfg.precision == "fp16"
     scaler = torch.amp.GradScaler("cuda", enabled=use_scaler) if use_scaler else None
 
-    step, stats = 0, None
+    step, stats, train_seconds = 0, None, 0.0  # train_seconds: optimiser time over all runs (no evaluations)
     ckpt_path = out_dir / CHECKPOINT_NAME
     if resume and ckpt_path.is_file():
         ck = load_checkpoint(ckpt_path, map_location=device)
@@ -128,6 +129,7 @@ def fit(
         set_rng_state(states[rank] if rank < len(states) else states[0])
         step = int(ck["loader"]["position"])
         stats = TrainStats(**ck["stats"])
+        train_seconds = float(ck.get("train_seconds", 0.0))
     if stats is None:
         stats = compute_stats(source, cfg.eval.stats_batches, cfg.eval.exposure_percentile)
 
@@ -147,6 +149,7 @@ def fit(
         unit="step",
     )
     t_start, rays_done, t_window, rays_window = time.perf_counter(), 0, time.perf_counter(), 0
+    t_mark = t_start  # train_seconds is accumulated up to here
     parts: dict[str, float] = {}
     loss_value, window_losses = float("nan"), []
     while step < total:
@@ -191,12 +194,26 @@ def fit(
             bar.set_postfix(loss=f"{loss_value:.4g}")
             t_window, rays_window, window_losses = now, 0, []
         if cfg.eval.every and step % cfg.eval.every == 0 and writer_rank and test_images:
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            now = time.perf_counter()
+            train_seconds += now - t_mark
             psnrs = preview(
-                model, test_images[: cfg.eval.images], stats, out_dir / "previews", step, cfg.eval.chunk, log
+                model,
+                test_images[: cfg.eval.images],
+                stats,
+                out_dir / "previews",
+                step,
+                cfg.eval.chunk,
+                log,
+                train_seconds,
             )
             bar.write(f"step {step}: test PSNR {np.mean(psnrs):.2f} dB on {len(psnrs)} image(s)")
+            t_mark = time.perf_counter()  # evaluation time is not training time
         if step % cfg.checkpoint_every == 0 or step == total:
-            _save(ckpt_path, model, opt, sched, scaler, step, world, stats, cfg, writer_rank)
+            now = time.perf_counter()
+            train_seconds, t_mark = train_seconds + now - t_mark, now
+            _save(ckpt_path, model, opt, sched, scaler, step, world, stats, cfg, writer_rank, train_seconds)
             if log is not None:
                 log.flush(plot=True)
     bar.close()
@@ -206,6 +223,7 @@ def fit(
         "final_loss": loss_value,
         "final_parts": parts,
         "seconds": elapsed,
+        "train_seconds": train_seconds,  # optimiser time over all runs of this training, evaluations excluded
         "rays_per_s": rays_done / elapsed if elapsed > 0 else None,
         "device": str(device),
         "world_size": world,
@@ -221,7 +239,7 @@ def fit(
     return summary
 
 
-def _save(path, model, opt, sched, scaler, step, world, stats, cfg, writer_rank) -> None:
+def _save(path, model, opt, sched, scaler, step, world, stats, cfg, writer_rank, train_seconds=0.0) -> None:
     """Gather every rank's RNG state; rank 0 writes the checkpoint atomically."""
     states = [rng_state()]
     if world > 1:
@@ -242,6 +260,7 @@ def _save(path, model, opt, sched, scaler, step, world, stats, cfg, writer_rank)
             "rng": [_to_cpu(s) for s in states],
             "loader": {"position": step, "world_size": world},
             "stats": {"exposure": stats.exposure, "baseline_rgb": stats.baseline_rgb},
+            "train_seconds": train_seconds,
         },
     )
 
@@ -258,7 +277,14 @@ def _to_cpu(x: Any) -> Any:
 
 @torch.no_grad()
 def preview(
-    model: RelightModel, images, stats: TrainStats, folder: Path, step: int, chunk: int, log=None
+    model: RelightModel,
+    images,
+    stats: TrainStats,
+    folder: Path,
+    step: int,
+    chunk: int,
+    log=None,
+    train_seconds: float = 0.0,
 ) -> list[float]:
     """Render a few test images, write prediction | target PNGs and return their PSNRs."""
     from lightstage.training.evaluate import render_image, side_by_side
@@ -277,7 +303,7 @@ def preview(
         if log is not None and log.tb is not None:
             log.tb.add_image(f"preview/{k}", png, step, dataformats="HWC")
     if log is not None:
-        log.add_eval(step, float(np.mean(psnrs)))
+        log.add_eval(step, float(np.mean(psnrs)), train_seconds)
     model.train(was_training)
     return psnrs
 
@@ -305,6 +331,12 @@ class _Log:
             with open(self.csv, newline="") as f:
                 self.rows = [r for r in csv.DictReader(f) if int(r["step"]) <= start_step]
         self.evals: list[dict[str, float]] = []
+        if start_step > 0 and (folder / "log.json").is_file():
+            try:
+                earlier = json.loads((folder / "log.json").read_text()).get("eval", [])
+                self.evals = [e for e in earlier if int(e["step"]) <= start_step]
+            except (OSError, ValueError, KeyError, TypeError, AttributeError):
+                self.evals = []  # an unreadable log only loses the earlier evaluations' history
         self.tb = None
         try:
             from torch.utils.tensorboard import SummaryWriter
@@ -320,8 +352,8 @@ class _Log:
                 if k != "step":
                     self.tb.add_scalar(f"train/{k}", v, row["step"])
 
-    def add_eval(self, step: int, psnr: float) -> None:
-        self.evals.append({"step": step, "psnr": psnr})
+    def add_eval(self, step: int, psnr: float, train_seconds: float = 0.0) -> None:
+        self.evals.append({"step": step, "psnr": psnr, "train_seconds": train_seconds})
         if self.tb is not None:
             self.tb.add_scalar("eval/psnr", psnr, step)
 
