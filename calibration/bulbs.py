@@ -96,16 +96,17 @@ def detect_bulb(
     max_offset_px: float = 20.0,
     min_roundness: float = 0.95,
 ) -> BulbDisc | None:
-    """The whole (round, not cut by the image border) clipped blob nearest `near` (within `max_offset_px`), or
-    the largest one without `near`; None if there is none.
+    """The whole (round) clipped blob nearest `near` (within `max_offset_px`), or the largest one without `near`;
+    None if there is none.
 
     The coverage of each processed pixel is recovered from its area-averaged value between the local background
-    and the clip level, so the centre is sub-pixel. A bulb partly hidden behind the object is a disc with a
-    piece cut off, and its second moments are no longer isotropic: `min_roundness` rejects it (whole discs
-    measure >= 0.97, one with 1% of its area hidden 0.93). Touching the (dilated) object `mask` is only flagged:
-    a segmentation can swallow a bulb and its glow next to the object, so the caller decides.
+    and the clip level, so the centre is sub-pixel. A bulb partly hidden behind the object or cut by the image
+    border is a disc with a piece cut off, and its second moments are no longer isotropic: `min_roundness`
+    rejects it (whole discs measure >= 0.97, one with 1% of its area hidden 0.93; a disc that merely reaches
+    the last row or column is whole, so touching the border alone is no reason). Touching the (dilated) object
+    `mask` is only flagged: a segmentation can swallow a bulb and its glow next to the object, so the caller
+    decides.
     """
-    h, w = saturated.shape
     mask = np.asarray(mask, bool)
     near_object = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
     if not saturated.any():
@@ -115,11 +116,9 @@ def detect_bulb(
     top = float(saturation)
     best: tuple[float, BulbDisc] | None = None
     for i in range(1, n):
-        x, y, bw, bh, area = stats[i]
+        area = stats[i, cv2.CC_STAT_AREA]
         if area < min_area:
             continue
-        if x == 0 or y == 0 or x + bw >= w or y + bh >= h:
-            continue  # cut by the image border
         comp = labels == i
         ring = (cv2.dilate(comp.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0) & ~saturated
         outside = ring & ~mask

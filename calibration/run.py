@@ -60,7 +60,7 @@ class CalibrateConfig:
     # triangulated, with the nominal position as prior (per-axis sigma); the others keep nominal positions.
     observe_bulbs: bool = True
     light_prior_sigma_mm: float = 3.0  # also the lights' mounting tolerance when they join the gauge
-    bulbs_in_gauge: bool = False  # observed lights join the camera centres/orientations in the gauge fit
+    bulbs_in_gauge: bool = True  # observed lights join the camera centres/orientations in the gauge fit
     bulb_pixel_sigma: float = 0.1  # disc-centre + camera-direction uncertainty, processed pixels
     peak_threshold: float = 0.004
     ransac_max_error_px: float = 2.0
