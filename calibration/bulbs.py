@@ -153,20 +153,31 @@ def detect_bulb(
 
 
 def combine_discs(
-    light: int, camera: str, discs: dict[str, BulbDisc], min_groups_touching: int = 3, area_tol: float = 0.03
+    light: int,
+    camera: str,
+    discs: dict[str, BulbDisc],
+    min_groups_touching: int = 3,
+    area_tol: float = 0.03,
+    centre_tol_px: float = 0.1,
 ) -> BulbSighting | None:
     """One sighting from the round discs of the groups' frames of a (light, camera), or None.
 
     The bulb is rig-locked, so its disc is the same in every group where nothing hides it, while the object
     turns: the whole disc has the largest area, and the groups within `area_tol` of it are kept. If any of them
     keeps clear of the object mask, those give the centre (median); otherwise (the segmentation took the bulb
-    or its glow as foreground) at least `min_groups_touching` groups, i.e. different silhouettes, must agree.
+    or its glow as foreground) at least `min_groups_touching` groups, i.e. different silhouettes, must agree:
+    same area and centres within `centre_tol_px` of their median (a clipped highlight on the object moves
+    with it from group to group).
     """
     if not discs:
         return None
     top = max(d.area for d in discs.values())
     keep = {g: d for g, d in discs.items() if d.area >= (1.0 - area_tol) * top}
     clear = {g: d for g, d in keep.items() if not d.touches_mask}
+    if not clear and keep:
+        u0 = float(np.median([d.u for d in keep.values()]))
+        v0 = float(np.median([d.v for d in keep.values()]))
+        keep = {g: d for g, d in keep.items() if np.hypot(d.u - u0, d.v - v0) <= centre_tol_px}
     use = clear or (keep if len(keep) >= min_groups_touching else {})
     if not use:
         return None

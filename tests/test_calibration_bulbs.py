@@ -76,6 +76,18 @@ def test_detect_bulb_rejects_partly_hidden_and_cut_bulbs():
     assert detect_bulb(rgb, sat, empty, CLIP) is None
 
 
+def test_detect_bulb_keeps_whole_discs_that_reach_the_border():
+    """A disc whose raw pixels end in the last raw row touches the processed image's last row but is whole:
+    kept, unbiased. Cut by 2 raw rows (~2.5% of its area), it is no longer round: rejected."""
+    empty = np.zeros((64, 96), bool)
+    rgb, sat = _frame((250.3, 256 - 15.2), 15.0)
+    assert sat[-1].any()
+    disc = detect_bulb(rgb, sat, empty, CLIP)
+    assert disc is not None and abs(disc.v - (256 - 15.2) / 4) < 0.02
+    rgb, sat = _frame((250.3, 256 - 13.0), 15.0)
+    assert detect_bulb(rgb, sat, empty, CLIP) is None
+
+
 def test_detect_bulb_takes_the_disc_near_the_expected_position():
     a, b = _frame((100.3, 100.7), 15.0), _frame((300.2, 150.9), 11.0)
     rgb, sat = np.maximum(a[0], b[0]), a[1] | b[1]
@@ -100,6 +112,9 @@ def test_combine_discs_prefers_groups_clear_of_the_mask():
     touching = {g: d(10.0, 20.0, 50.0, 0.99, True) for g in ("000", "040", "080")}
     assert combine_discs(3, "cam01", touching).touching_mask
     assert combine_discs(3, "cam01", dict(list(touching.items())[:2])) is None
+    # ... with the same centre: a clipped highlight moving with the object from group to group is no bulb.
+    moving = {g: d(10.0 + i, 20.0, 50.0, 0.99, True) for i, g in enumerate(("000", "040", "080", "120"))}
+    assert combine_discs(3, "cam01", moving) is None
     assert combine_discs(3, "cam01", {}) is None
 
 
