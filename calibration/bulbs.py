@@ -1,11 +1,12 @@
-"""Light positions from the bulbs visible in the frames: saturated blobs outside the object, triangulated.
+"""Light positions from the bulbs visible in the frames: clipped discs of rig-locked lights, triangulated.
 
 A light that a camera sees directly shows as a small clipped disc in that camera's frame of that light. Lights
 and cameras are locked to the rig, so in the stage rig frame each such observation is a ray from the camera
 centre towards the bulb, the same in every group (the groups only change what the object hides). Per (light,
-camera) the disc centre is taken from the processed frames of the groups where the disc is whole (round, not cut
-by the image border, clear of the object mask or confirmed by several groups): a `BulbSighting` (`find_bulbs`). Sightings do not depend on the rig's gauge, so
-they are found once and turned into rays for any rig estimate:
+camera) the disc centre is taken from the processed frames of the groups where the disc is whole (round, so
+neither partly hidden nor cut by the image border; clear of the object mask, or confirmed by several groups):
+a `BulbSighting` (`find_bulbs`). Sightings do not depend on the rig's gauge, so they are found once and turned
+into rays for any rig estimate:
 - `gauge_points`: the observed lights as extra nominal points for the world-frame gauge (`register.fit_gauge`):
   a light seen by two or more cameras is triangulated, one seen by a single camera constrains the 2 coordinates
   across its ray; the weight combines the ray precision and the light's mounting tolerance.
@@ -47,9 +48,7 @@ class BulbSightings:
     sightings: list[BulbSighting] = field(default_factory=list)
     candidates: int = 0  # (light, camera) pairs where the nominal light projects inside the image
     frames_read: int = 0
-    unconfirmed: int = (
-        0  # (light, camera) pairs with round discs, but only touching the mask in too few groups
-    )
+    unconfirmed: int = 0  # pairs with round discs, but touching the mask and agreeing in too few groups
     read_errors: list[str] = field(default_factory=list)
 
 
@@ -210,15 +209,14 @@ def find_bulbs(
     w, h = stage.width // DOWNSCALE, stage.height // DOWNSCALE
     out = BulbSightings()
     K_proc = processed_intrinsics(stage, intrinsics)
-    masks: dict[tuple[str, str], np.ndarray] = {}
-    for li, light in enumerate(stage.lights):
-        p0 = np.asarray(nominal_rig[li], np.float64)
-        for cam in stage.cameras:
-            if cam.id not in cam_from_rig:
-                continue
-            R, t = cam_from_rig[cam.id]
-            K = K_proc[cam.id]
-            pc = R @ p0 + t
+    for cam in stage.cameras:
+        if cam.id not in cam_from_rig:
+            continue
+        R, t = cam_from_rig[cam.id]
+        K = K_proc[cam.id]
+        masks: dict[str, np.ndarray] = {}  # this camera's masks per group (read once, kept for one camera)
+        for li, light in enumerate(stage.lights):
+            pc = R @ np.asarray(nominal_rig[li], np.float64) + t
             if pc[2] <= 0:
                 continue
             u, v = (K @ pc)[:2] / pc[2]
@@ -236,12 +234,11 @@ def find_bulbs(
                     out.read_errors.append(str(e))
                     continue
                 out.frames_read += 1
-                key = (g, cam.id)
-                if key not in masks:
+                if g not in masks:
                     m = cv2.imread(str(work.mask(ViewId(g, cam.id))), cv2.IMREAD_GRAYSCALE)
-                    masks[key] = m > 127 if m is not None else np.zeros((h, w), bool)
+                    masks[g] = m > 127 if m is not None else np.zeros((h, w), bool)
                 disc = detect_bulb(
-                    rgb, sat, masks[key], stage.saturation, near=(u, v), max_offset_px=max_offset_px
+                    rgb, sat, masks[g], stage.saturation, near=(u, v), max_offset_px=max_offset_px
                 )
                 if disc is not None:
                     found[g] = disc
