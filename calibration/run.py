@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -62,6 +63,7 @@ class CalibrateConfig:
     light_prior_sigma_mm: float = 3.0  # also the lights' mounting tolerance when they join the gauge
     bulbs_in_gauge: bool = True  # observed lights join the camera centres/orientations in the gauge fit
     bulb_pixel_sigma: float = 0.1  # disc-centre + camera-direction uncertainty, processed pixels
+    bulb_gauge_max_sigma: float = 4.0  # a light further off its nominal position (in sigmas) leaves the gauge
     peak_threshold: float = 0.004
     ransac_max_error_px: float = 2.0
     num_threads: int = 2
@@ -104,10 +106,12 @@ class CalibrateConfig:
             cfg.gauge_position_sigma_mm <= 0
             or cfg.light_prior_sigma_mm <= 0
             or cfg.bulb_pixel_sigma <= 0
+            or cfg.bulb_gauge_max_sigma <= 0
             or cfg.gauge_rotation_sigma_deg < 0
         ):
             raise LightstageError(
-                "calibration config: gauge_position_sigma_mm, light_prior_sigma_mm and bulb_pixel_sigma must be > 0, "
+                "calibration config: gauge_position_sigma_mm, light_prior_sigma_mm, bulb_pixel_sigma and "
+                "bulb_gauge_max_sigma must be > 0, "
                 "gauge_rotation_sigma_deg >= 0"
             )
         if not 0.0 < cfg.min_registered_fraction <= 1.0:
@@ -158,6 +162,31 @@ def _light_floor(capture: Capture, truth: Calibration) -> Calibration:
     p_rig = capture.stage.light_positions_rig()
     lights = {g: light_position_in_world(p_rig, y, truth.axis) for g, y in truth.yaws_deg.items()}
     return Calibration("floor", {}, lights, truth.axis, truth.yaws_deg)
+
+
+def gauge_with_lights(
+    register: Callable[[tuple | None], Any],
+    src: np.ndarray,
+    lights: list[int],
+    nominal: np.ndarray,
+    sqrt_info: np.ndarray,
+    max_sigma: float,
+) -> tuple[Any, list[int], dict[str, float]]:
+    """Refit the gauge with observed lights as extra points (`register(extra_points)` -> Registration); a light
+    whose weighted residual |L (S x - nominal)| exceeds `max_sigma` (a wrong disc, or a camera SfM got wrong) is
+    dropped and the gauge refitted once. Returns (registration, lights used, {dropped light: residual})."""
+    src, nominal, sqrt_info = np.asarray(src), np.asarray(nominal), np.asarray(sqrt_info)
+    reg = register((src, nominal, sqrt_info))
+    resid = np.linalg.norm(
+        np.einsum("nij,nj->ni", sqrt_info, reg.rig_similarity.apply(src) - nominal), axis=1
+    )
+    bad = resid > max_sigma
+    if not bad.any():
+        return reg, list(lights), {}
+    keep = ~bad
+    rejected = {str(lights[i]): round(float(resid[i]), 2) for i in np.flatnonzero(bad)}
+    reg = register((src[keep], nominal[keep], sqrt_info[keep]) if keep.any() else None)
+    return reg, [lt for lt, k in zip(lights, keep, strict=True) if k], rejected
 
 
 def _sfm_calibration(
@@ -276,6 +305,7 @@ def _sfm_calibration(
         )
     p_rig = stage.light_positions_rig()
     gauge_lights: list[int] = []
+    gauge_rejected: dict[str, float] = {}
     if config.observe_bulbs:
         from lightstage.calibration.bulbs import (
             find_bulbs,
@@ -299,7 +329,14 @@ def _sfm_calibration(
                 mount_sigma_m=light_sigma,
                 pixel_sigma=config.bulb_pixel_sigma,
             )
-            reg = register((reg.rig_similarity.inverse().apply(pts), nom, sqrt_info))
+            reg, gauge_lights, gauge_rejected = gauge_with_lights(
+                register,
+                reg.rig_similarity.inverse().apply(pts),
+                gauge_lights,
+                nom,
+                sqrt_info,
+                config.bulb_gauge_max_sigma,
+            )
         bulbs = locate_lights(
             found.sightings,
             {c: (T.R, T.t) for c, T in reg.cam_from_rig.items()},
@@ -314,6 +351,7 @@ def _sfm_calibration(
             "num_observed": len(bulbs.cameras_per_light),
             "num_triangulated": sum(len(c) >= 2 for c in bulbs.cameras_per_light.values()),
             "num_in_gauge": len(gauge_lights),
+            "gauge_rejected": gauge_rejected,
             "candidate_light_cameras": found.candidates,
             "frames_read": found.frames_read,
             "unconfirmed_light_cameras": found.unconfirmed,
