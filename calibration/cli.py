@@ -11,19 +11,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "calibrate",
         help="camera poses, turntable axis/yaws and light positions of a work directory",
-        description="Calibrate WORK: SfM (pycolmap) on the preprocess outputs registered to the stage frame, or "
+        description="Calibrate WORK: SfM (pycolmap) on the preprocess SfM images and masks, registered to the stage frame, or "
         "the nominal stage.yaml geometry. Writes WORK/calibration/ and WORK/reports/calibration.json.",
     )
     p.add_argument("work", type=Path, help="work directory (after `lightstage preprocess`)")
     p.add_argument("--method", choices=["sfm", "nominal"], default="sfm", help="sfm (default) or nominal")
     p.add_argument("--intrinsics", help="intrinsics JSON from `lightstage calibrate-intrinsics`")
     p.add_argument("--threads", type=int, default=2, help="pycolmap threads (default 2)")
-    p.add_argument(
-        "--sfm-max-side",
-        type=int,
-        default=2048,
-        help="SfM images at the largest raw/f resolution with long side <= this (0: the processed images)",
-    )
     p.add_argument("--keep-sfm", action="store_true", help="keep WORK/calibration/sfm (images, database)")
     p.add_argument("--quiet", action="store_true", help="less output")
     p.set_defaults(func=_calibrate)
@@ -58,7 +52,6 @@ def _calibrate(args: argparse.Namespace) -> int:
             "intrinsics": args.intrinsics,
             "num_threads": args.threads,
             "keep_sfm_workspace": args.keep_sfm,
-            "sfm_image_max_side": args.sfm_max_side,
         }
     )
     summary = run_calibrate(WorkDir.at(args.work), config, progress=not args.quiet)

@@ -2,8 +2,8 @@
 
 Methods (explicit, never a silent fallback):
 - `nominal`: cameras, lights, axis and yaws straight from stage.yaml.
-- `sfm`: pycolmap (`sfm.py`) on the preprocess stage's well-lit images + masks, or on sharper images built from
-  a few raw frames when the raw resolution allows (`sfm_images.py`), registered to the world frame with the
+- `sfm`: pycolmap (`sfm.py`) on the preprocess stage's per-view SfM images + masks (preprocess/sfm_image.py:
+  a trimmed mean of a few frames at up to raw resolution), registered to the world frame with the
   nominal rig (centres and orientations) as gauge (`register.py`); fails with a LightstageError naming the views when views stay
   unregistered or residuals exceed the thresholds.
 Outputs: calibration.json (the record every later stage reads), colmap/ (sparse model), transforms.json
@@ -26,7 +26,7 @@ import numpy as np
 from lightstage.atomic import write_json_atomic
 from lightstage.calibration.record import Calibration, ViewCalibration
 from lightstage.cameras import camera_center, scale_intrinsics
-from lightstage.capture.layout import Capture, open_capture
+from lightstage.capture.layout import Capture, ViewId, open_capture
 from lightstage.errors import LightstageError
 from lightstage.rig import light_position_in_world
 from lightstage.workdir import DOWNSCALE, WorkDir
@@ -48,9 +48,6 @@ class CalibrateConfig:
     max_rig_fit_rms_mm: float = 50.0  # recovered rig vs nominal camera centres; larger = wrong stage.yaml
     max_features: int = 8192
     mask_erode_px: int = 2  # feature-mask erosion in processed pixels (scaled to the SfM images)
-    sfm_image_max_side: int = 2048  # SfM images at raw / f, the largest with long side <= this (0: processed)
-    sfm_image_lights: int = 8  # raw frames (evenly spread lights) averaged per view for those images
-    sfm_image_trim: bool = True  # leave each pixel's brightest light out of that mean (specular highlights)
     sift_first_octave: int = -1  # -1: SIFT upsamples once (more, finer features; 0 halved the accuracy)
     max_pair_angle_deg: float = 90.0  # match views whose nominal camera centres are within this angle
     # World-frame gauge: the similarity that best fits the nominal rig's camera centres AND orientations, given
@@ -189,44 +186,46 @@ def gauge_with_lights(
     return reg, [lt for lt, k in zip(lights, keep, strict=True) if k], rejected
 
 
+def _preprocess_sfm_images(work: WorkDir, capture: Capture) -> tuple[dict[ViewId, tuple[Path, Path]], dict]:
+    """Every view's (SfM image, feature mask) from preprocess and their common factor/size/exposure; a clear
+    error naming the views when preprocess has not written them (run or rerun `lightstage preprocess`)."""
+    views, missing = {}, []
+    for v in capture.views():
+        img, mask = work.sfm_image(v), work.sfm_mask(v)
+        if img.is_file() and mask.is_file():
+            views[v] = (img, mask)
+        else:
+            missing.append(str(v))
+    if missing or not work.sfm_info.is_file():
+        what = f"{len(missing)} views ({', '.join(missing[:10])}{' ...' if len(missing) > 10 else ''})"
+        raise LightstageError(
+            f"{work.preprocess_dir}: no SfM image or mask for {what if missing else 'the capture'} "
+            f"(or no {work.sfm_info.name}); run `lightstage preprocess` (again, with this version) first"
+        )
+    try:
+        info = json.loads(work.sfm_info.read_text())
+        factor, (w, h) = int(info["factor"]), info["size"]
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise LightstageError(f"{work.sfm_info}: unreadable ({e}); rerun `lightstage preprocess`") from None
+    st = capture.stage
+    if factor < 1 or (st.width // factor, st.height // factor) != (w, h):
+        raise LightstageError(
+            f"{work.sfm_info}: SfM images are {w}x{h} at raw / {factor}, which does not fit the stage's "
+            f"{st.width}x{st.height}; rerun `lightstage preprocess`"
+        )
+    return views, info
+
+
 def _sfm_calibration(
     work: WorkDir, capture: Capture, config: CalibrateConfig, intr: dict, log, progress: bool = False
 ) -> tuple[Calibration, dict[str, Any], Any]:
     from lightstage.calibration.register import Registration, register_rig
     from lightstage.calibration.sfm import SfmOptions, run_sfm
-    from lightstage.calibration.sfm_images import build_sfm_images
 
     stage = capture.stage
-    views = {}
-    missing = []
-    for v in capture.views():
-        w, m = work.wellit(v), work.mask(v)
-        if w.is_file() and m.is_file():
-            views[v] = (w, m)
-        else:
-            missing.append(str(v))
-    if missing:
-        raise LightstageError(
-            f"{work.preprocess_dir}: no well-lit image or mask for {len(missing)} views "
-            f"({', '.join(missing[:10])}{' ...' if len(missing) > 10 else ''}); run `lightstage preprocess` first"
-        )
-    if stage.width % DOWNSCALE or stage.height % DOWNSCALE:
-        raise LightstageError(
-            f"stage resolution {stage.width}x{stage.height} is not divisible by {DOWNSCALE}"
-        )
-    images = build_sfm_images(
-        capture,
-        views,
-        work.calibration_dir / "sfm_images",
-        config.sfm_image_max_side,
-        config.sfm_image_lights,
-        trim_brightest=config.sfm_image_trim,
-        progress=progress,
-    )
-    f, w, h = images.factor, images.width, images.height
-    log(
-        f"SfM images: {w}x{h} (raw / {f}){f' from {len(images.lights)} raw frames per view' if images.lights else ''}"
-    )
+    views, info = _preprocess_sfm_images(work, capture)
+    f, (w, h) = int(info["factor"]), info["size"]
+    log(f"SfM images from preprocess: {w}x{h} (raw / {f}), mean of {info['lights']} frames per view")
     sfm_intr = {c: (scale_intrinsics(K, 1.0 / f), dist, w, h) for c, (K, dist) in intr.items()}
     options = SfmOptions(
         max_features=config.max_features,
@@ -249,7 +248,7 @@ def _sfm_calibration(
     }
     colmap_log = work.calibration_dir / "colmap.log"
     result = run_sfm(
-        images.views,
+        views,
         sfm_intr,
         stage.camera_ids,
         sfm_dir,
@@ -260,14 +259,7 @@ def _sfm_calibration(
     )
     stats = dict(result.stats)
     stats["colmap_log"] = str(colmap_log)
-    stats["images"] = {
-        "factor": f,
-        "size": [w, h],
-        "raw_lights_averaged": images.lights,
-        "exposure": images.exposure,
-        "seconds": round(images.seconds, 2),
-        "skipped_frames": images.skipped,
-    }
+    stats["images"] = {"source": str(work.sfm_info), **info}
     n_needed = int(np.ceil(config.min_registered_fraction * len(views)))
     if len(result.registered) < n_needed:
         raise LightstageError(
@@ -493,7 +485,6 @@ def run_calibrate(
             import shutil
 
             shutil.rmtree(work.calibration_dir / "sfm", ignore_errors=True)
-            shutil.rmtree(work.calibration_dir / "sfm_images", ignore_errors=True)
     seconds = time.perf_counter() - t0
     summary = {
         "method": config.method,

@@ -17,41 +17,19 @@ from lightstage.calibration.export import colmap_image_name
 from lightstage.calibration.record import Calibration
 from lightstage.calibration.run import CalibrateConfig, run_calibrate
 from lightstage.cameras import opengl_c2w_to_opencv, pixel_rays, project
-from lightstage.capture.layout import FrameId, open_capture
+from lightstage.capture.layout import open_capture
 from lightstage.errors import LightstageError
-from lightstage.tonemap import auto_exposure, tonemap_u8
 from lightstage.workdir import DOWNSCALE, WorkDir
 
 
-def stand_in_preprocess(capture_root: Path, work: WorkDir, lights: list[int] | None = None) -> None:
-    """Well-lit PNG + mask per view as the preprocess stage writes them, made directly from the raw frames
-    (mean over lights, 4x area downscale, one tonemap per capture) and the simulator's GT masks. Used only
-    where the real preprocess stage is unavailable."""
-    from lightstage.capture.frames import read_image
+def real_preprocess(capture_root: Path, work: WorkDir) -> None:
+    """The preprocess stage's outputs (SfM images, masks, processed frames) for a capture, in `work`."""
+    from lightstage.preprocess.config import PreprocessConfig
+    from lightstage.preprocess.run import run_preprocess
 
-    cap = open_capture(capture_root)
     work.root.mkdir(parents=True, exist_ok=True)
     work.capture_pointer.write_text(str(capture_root))
-    w, h = cap.stage.width // DOWNSCALE, cap.stage.height // DOWNSCALE
-    lights = lights if lights is not None else [lt.index for lt in cap.stage.lights]
-    means = {}
-    for v in cap.views():
-        acc = np.zeros((cap.stage.height, cap.stage.width, 3), np.float32)
-        for li in lights:
-            acc += read_image(cap.frame_path(FrameId(v.group, v.camera, li)))[..., :3]
-        means[v] = cv2.resize(acc / len(lights), (w, h), interpolation=cv2.INTER_AREA)
-    masks = {}
-    for v in cap.views():
-        m = cv2.imread(
-            str(capture_root / "ground_truth" / "masks" / v.group / f"{v.camera}.png"), cv2.IMREAD_GRAYSCALE
-        )
-        masks[v] = cv2.resize(m.astype(np.float32) / 255.0, (w, h), interpolation=cv2.INTER_AREA) > 0.5
-    fg = np.concatenate([means[v][masks[v]] for v in means])
-    exposure = auto_exposure(fg[None], 99.0)
-    for v, img in means.items():
-        work.view_dir(v).mkdir(parents=True, exist_ok=True)
-        cv2.imwrite(str(work.wellit(v)), cv2.cvtColor(tonemap_u8(img, exposure), cv2.COLOR_RGB2BGR))
-        cv2.imwrite(str(work.mask(v)), masks[v].astype(np.uint8) * 255)
+    run_preprocess(work, PreprocessConfig(), progress=False)
 
 
 @pytest.fixture(scope="module")
@@ -138,8 +116,7 @@ def test_world_camera_pixel_round_trip(tiny_capture: Path):
 
 
 def test_sfm_failure_is_a_clear_error_naming_views(tiny_capture: Path, tmp_path: Path, capfd):
-    """Featureless images: SfM must fail loudly, naming views, and never fall back to nominal. (SfM runs on the
-    preprocess images here, `sfm_image_max_side = 0`: by default it would build its own from the raw frames.)"""
+    """Featureless images: SfM must fail loudly, naming views, and never fall back to nominal."""
     work = WorkDir.at(tmp_path / "w")
     cap = open_capture(tiny_capture)
     work.root.mkdir(parents=True)
@@ -147,10 +124,13 @@ def test_sfm_failure_is_a_clear_error_naming_views(tiny_capture: Path, tmp_path:
     w, h = cap.stage.width // DOWNSCALE, cap.stage.height // DOWNSCALE
     for v in cap.views():
         work.view_dir(v).mkdir(parents=True)
-        cv2.imwrite(str(work.wellit(v)), np.full((h, w, 3), 90, np.uint8))
-        cv2.imwrite(str(work.mask(v)), np.full((h, w), 255, np.uint8))
+        cv2.imwrite(str(work.sfm_image(v)), np.full((h, w, 3), 90, np.uint8))
+        cv2.imwrite(str(work.sfm_mask(v)), np.full((h, w), 255, np.uint8))
+    work.sfm_info.write_text(
+        json.dumps({"factor": DOWNSCALE, "size": [w, h], "lights": [0], "exposure": 1.0})
+    )
     with pytest.raises(LightstageError, match=r"SfM.*000/cam00"):
-        run_calibrate(work, CalibrateConfig(method="sfm", sfm_image_max_side=0), progress=False)
+        run_calibrate(work, CalibrateConfig(method="sfm"), progress=False)
     assert not work.calibration.exists()
     report = json.loads(work.report("calibration").read_text())
     assert report["status"] == "failed" and "SfM" in report["error"]
@@ -165,7 +145,7 @@ def test_calibrate_prints_no_colmap_log_lines(tiny_capture: Path, tmp_path: Path
     """COLMAP's glog output (C-level stderr, hundreds of lines even here) goes to WORK/calibration/colmap.log,
     not to the terminal; fd 2 works normally afterwards."""
     work = WorkDir.at(tmp_path / "w")
-    stand_in_preprocess(tiny_capture, work)
+    real_preprocess(tiny_capture, work)
     capfd.readouterr()
     run_calibrate(work, CalibrateConfig(method="sfm"), progress=True)
     out, err = capfd.readouterr()
@@ -206,18 +186,6 @@ def test_missing_preprocess_outputs_are_named(tiny_work: WorkDir, tmp_path: Path
         run_calibrate(work, CalibrateConfig(method="sfm"), progress=False)
 
 
-def test_sfm_image_factor_and_light_spread():
-    from lightstage.calibration.sfm_images import sfm_image_factor, spread_lights
-
-    assert sfm_image_factor(768, 512, 2048) == 1  # small: raw
-    assert sfm_image_factor(8192, 5464, 2048) == DOWNSCALE  # paper: the processed images
-    assert sfm_image_factor(4096, 2732, 2048) == 2
-    assert sfm_image_factor(768, 512, 0) == DOWNSCALE  # 0: always the processed images
-    assert sfm_image_factor(770, 514, 500) == 2  # 3 does not divide 770
-    assert spread_lights(list(range(32)), 4) == [0, 10, 21, 31]
-    assert spread_lights([5, 1, 3], 8) == [1, 3, 5]
-
-
 def test_view_pairs_keep_nearby_views(tiny_capture: Path):
     from lightstage.calibration.sfm import view_pairs
 
@@ -248,66 +216,13 @@ def test_view_pairs_keep_nearby_views(tiny_capture: Path):
             assert ((a, b) in kept) == (ca @ cb >= 0.0)
 
 
-def test_sfm_images_from_raw_frames(tiny_capture: Path, tmp_path: Path):
-    """Raw-resolution SfM images: mean of a few raw frames, one exposure, masks upsampled to match."""
-    from lightstage.calibration.sfm_images import build_sfm_images
-
-    cap = open_capture(tiny_capture)
-    work = WorkDir.at(tmp_path / "w")
-    w, h = cap.stage.width // DOWNSCALE, cap.stage.height // DOWNSCALE
-    views = {}
-    for v in cap.views():
-        work.view_dir(v).mkdir(parents=True)
-        m = cv2.imread(
-            str(tiny_capture / "ground_truth" / "masks" / v.group / f"{v.camera}.png"), cv2.IMREAD_GRAYSCALE
-        )
-        cv2.imwrite(str(work.mask(v)), cv2.resize(m, (w, h), interpolation=cv2.INTER_AREA))
-        cv2.imwrite(str(work.wellit(v)), np.zeros((h, w, 3), np.uint8))
-        views[v] = (work.wellit(v), work.mask(v))
-    imgs = build_sfm_images(cap, views, tmp_path / "sfm_images", max_side=2048, num_lights=3)
-    assert imgs.factor == 1 and (imgs.width, imgs.height) == (cap.stage.width, cap.stage.height)
-    assert len(imgs.lights) == 3 and imgs.exposure > 0
-    assert set(imgs.views) == set(views)
-    fg_levels = []
-    for img_path, mask_path in imgs.views.values():
-        img = cv2.imread(str(img_path), cv2.IMREAD_UNCHANGED)
-        m = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
-        assert img.shape == (cap.stage.height, cap.stage.width, 3) and img.dtype == np.uint8
-        assert m.shape == img.shape[:2] and set(np.unique(m)) <= {0, 255}
-        if m.any():
-            fg_levels.append(np.percentile(img[m > 0], 99))
-    # One exposure for the capture maps a high foreground percentile near white.
-    assert 150 < np.median(fg_levels) <= 255
-    # max_side 0: the preprocess images are used unchanged, nothing is read from the raw capture.
-    same = build_sfm_images(cap, views, tmp_path / "unused", max_side=0, num_lights=3)
-    assert same.factor == DOWNSCALE and same.views == views and not (tmp_path / "unused").exists()
-
-
-def test_sfm_image_trim_leaves_out_the_brightest_frame(tiny_capture: Path):
-    from lightstage.calibration.sfm_images import _mean_image
-    from lightstage.capture.frames import read_exr
-
-    cap = open_capture(tiny_capture)
-    view = next(iter(cap.views()))
-    lights = [0, 4, 8]
-    frames = np.stack(
-        [read_exr(cap.frame_path(FrameId(view.group, view.camera, lt))).astype(np.float32) for lt in lights]
-    )
-    skipped: list[str] = []
-    plain = _mean_image(cap, view, lights, 1, skipped)
-    trimmed = _mean_image(cap, view, lights, 1, skipped, trim=True)
-    np.testing.assert_allclose(plain, frames.mean(0), rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(trimmed, (frames.sum(0) - frames.max(0)) / 2, rtol=1e-5, atol=1e-6)
-    assert not skipped
-
-
 def test_colmap_image_names_are_rig_folders():
     assert colmap_image_name("040", "cam03") == "cam03/040.png"
 
 
 # ---- SfM on the simulator's `small` capture (slow) -------------------------------------------------------------
 # Subset: all 9 groups x 20 cameras at the preset's raw resolution, but 6 evenly spread lights (simulating all of
-# them takes ~6x longer; the well-lit image is the mean over the simulated lights).
+# them takes ~6x longer; preprocess builds the SfM images from the simulated lights).
 SMALL_NUM_LIGHTS = 6
 
 
@@ -320,15 +235,7 @@ def small_sfm(tmp_path_factory: pytest.TempPathFactory) -> tuple[WorkDir, dict, 
     lights = sorted({int(round(x)) for x in np.linspace(0, n - 1, SMALL_NUM_LIGHTS)})
     cap = simulate_capture(root / "capture", preset="small", seed=0, lights=lights, progress=False)
     work = WorkDir.at(root / "work")
-    work.root.mkdir()
-    work.capture_pointer.write_text(str(cap))
-    try:
-        from lightstage.preprocess.config import PreprocessConfig
-        from lightstage.preprocess.run import run_preprocess
-    except ImportError:  # the real preprocess stage is absent: same outputs from the stand-in
-        stand_in_preprocess(cap, work)
-    else:
-        run_preprocess(work, PreprocessConfig.from_dict({}), progress=False)
+    real_preprocess(cap, work)
     summary = run_calibrate(work, CalibrateConfig(method="sfm"), progress=False)
     return work, summary, cap
 
@@ -387,3 +294,21 @@ def test_sfm_small_meets_accuracy_targets(small_sfm):
     assert gt["raw"]["camera_centre_error_mm"]["max"] <= 2.0
     assert gt["yaw_error_deg"]["max"] <= 0.05
     assert gt["raw"]["light_position_error_mm"]["max"] <= 5.0
+
+
+def test_sfm_without_preprocess_sfm_images_names_them(tiny_capture: Path, tmp_path: Path):
+    """A work directory from an older preprocess (no sfm.png / sfm_images.json): a clear error, nothing written."""
+    work = WorkDir.at(tmp_path / "w")
+    cap = open_capture(tiny_capture)
+    work.root.mkdir(parents=True)
+    work.capture_pointer.write_text(str(tiny_capture))
+    w, h = cap.stage.width // DOWNSCALE, cap.stage.height // DOWNSCALE
+    for v in cap.views():
+        work.view_dir(v).mkdir(parents=True)
+        cv2.imwrite(str(work.wellit(v)), np.full((h, w, 3), 90, np.uint8))
+        cv2.imwrite(str(work.mask(v)), np.full((h, w), 255, np.uint8))
+    with pytest.raises(
+        LightstageError, match=r"no SfM image or mask for \d+ views \(000/cam00.*lightstage preprocess"
+    ):
+        run_calibrate(work, CalibrateConfig(method="sfm"), progress=False)
+    assert not work.calibration.exists()
