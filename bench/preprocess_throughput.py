@@ -200,11 +200,14 @@ def run_stage(capture: Path, work_root: Path, workers: int, chunk_lights: int, c
         rss = sorted(client.run(_worker_peak_rss_mb).values())
     report = json.loads(work.report("preprocess").read_text())
     n = report["counts"]["processed"]
-    chunk_s = chunk_cpu = 0.0
+    chunk_s = chunk_cpu = view_s = 0.0
+    views = 0
     for v in (work.preprocess_dir / "views").rglob("view.json"):
-        chunks = json.loads(v.read_text())["chunks"]
-        chunk_s += sum(c["seconds"] for c in chunks)
-        chunk_cpu += sum(c["cpu_seconds"] for c in chunks)
+        record = json.loads(v.read_text())
+        view_s += record["seconds"]
+        views += 1
+        chunk_s += sum(c["seconds"] for c in record["chunks"])
+        chunk_cpu += sum(c["cpu_seconds"] for c in record["chunks"])
     shutil.rmtree(work.root)
     return {
         "workers": workers,
@@ -213,6 +216,9 @@ def run_stage(capture: Path, work_root: Path, workers: int, chunk_lights: int, c
         "wall_per_frame_s": round(wall / n, 4),
         "task_per_frame_s": round(chunk_s / n, 4),
         "task_cpu_per_frame_s": round(chunk_cpu / n, 4),
+        # Per-view work after the frames (merge, segment, SfM image, view outputs) and the previews at the end.
+        "view_finish_s_per_view": round(view_s / max(views, 1), 3),
+        "previews_s": report["timings"]["previews_s"],
         "peak_rss_mb_per_worker": [round(r) for r in rss],
         "load_before": round(load0, 2),
         "load_after": round(os.getloadavg()[0], 2),
@@ -270,20 +276,26 @@ def main() -> None:
             if k.startswith("write_")
         }
         capture = make_capture(tmp / "capture", distinct, args.cameras, args.lights)
-        runs = [
-            run_stage(capture, tmp / f"work{w}", w, args.chunk_lights, args.compression) for w in args.workers
-        ]
+        # The decode floor right before and right after the first stage run: the ratio uses their mean, so a
+        # drift of the machine (the floor moved by 15% within one run on the shared VM) shows up in the
+        # before/after pair instead of biasing the ratio.
+        runs, floors = [], []
+        for i, w in enumerate(args.workers):
+            if i == 0:
+                floors.append(decode_only(distinct))
+            runs.append(run_stage(capture, tmp / f"work{w}", w, args.chunk_lights, args.compression))
+            if i == 0:
+                floors.append(decode_only(distinct))
         result["stage"] = runs
+        result["decode_only_around_first_run_s"] = [
+            {"wall": round(a, 4), "cpu": round(b, 4)} for a, b in floors
+        ]
         if not args.skip_rss_check:
             longer = make_capture(tmp / "capture2", distinct, 1, 2 * args.lights)
             result["stage_longer_view"] = run_stage(
                 longer, tmp / "work_long", 1, args.chunk_lights, args.compression
             )
-        # The decode floor again after the stage runs: the ratio uses the mean of both, so a load change on a
-        # shared machine between the two measurements shows up (compare before/after) instead of biasing it.
-        after_wall, after_cpu = decode_only(distinct)
-        result["decode_only_after_s"] = {"wall": round(after_wall, 4), "cpu": round(after_cpu, 4)}
-        dec_wall, dec_cpu = (dec_wall + after_wall) / 2, (dec_cpu + after_cpu) / 2
+        dec_wall, dec_cpu = (float(np.mean(x)) for x in zip(*floors, strict=True))
         one = runs[0]
         result["ratios"] = {
             "decode_floor_s": {"wall": round(dec_wall, 4), "cpu": round(dec_cpu, 4)},
