@@ -32,6 +32,22 @@ def real_preprocess(capture_root: Path, work: WorkDir) -> None:
     run_preprocess(work, PreprocessConfig(), progress=False)
 
 
+def flat_grey_views(capture_root: Path, root: Path, sfm_images: bool) -> WorkDir:
+    """A work dir whose every view has a featureless grey image and a full mask, at processed resolution: as
+    preprocess's SfM image + mask (`sfm_images`) or only as the older well-lit image + mask."""
+    work = WorkDir.at(root)
+    cap = open_capture(capture_root)
+    work.root.mkdir(parents=True)
+    work.capture_pointer.write_text(str(capture_root))
+    w, h = cap.stage.width // DOWNSCALE, cap.stage.height // DOWNSCALE
+    for v in cap.views():
+        work.view_dir(v).mkdir(parents=True)
+        image, mask = (work.sfm_image(v), work.sfm_mask(v)) if sfm_images else (work.wellit(v), work.mask(v))
+        cv2.imwrite(str(image), np.full((h, w, 3), 90, np.uint8))
+        cv2.imwrite(str(mask), np.full((h, w), 255, np.uint8))
+    return work
+
+
 @pytest.fixture(scope="module")
 def tiny_work(tiny_capture: Path, tmp_path_factory: pytest.TempPathFactory) -> WorkDir:
     work = WorkDir.at(tmp_path_factory.mktemp("work") / "tiny")
@@ -117,15 +133,9 @@ def test_world_camera_pixel_round_trip(tiny_capture: Path):
 
 def test_sfm_failure_is_a_clear_error_naming_views(tiny_capture: Path, tmp_path: Path, capfd):
     """Featureless images: SfM must fail loudly, naming views, and never fall back to nominal."""
-    work = WorkDir.at(tmp_path / "w")
-    cap = open_capture(tiny_capture)
-    work.root.mkdir(parents=True)
-    work.capture_pointer.write_text(str(tiny_capture))
-    w, h = cap.stage.width // DOWNSCALE, cap.stage.height // DOWNSCALE
-    for v in cap.views():
-        work.view_dir(v).mkdir(parents=True)
-        cv2.imwrite(str(work.sfm_image(v)), np.full((h, w, 3), 90, np.uint8))
-        cv2.imwrite(str(work.sfm_mask(v)), np.full((h, w), 255, np.uint8))
+    work = flat_grey_views(tiny_capture, tmp_path / "w", sfm_images=True)
+    stage = open_capture(tiny_capture).stage
+    w, h = stage.width // DOWNSCALE, stage.height // DOWNSCALE
     work.sfm_info.write_text(
         json.dumps({"factor": DOWNSCALE, "size": [w, h], "lights": [0], "exposure": 1.0})
     )
@@ -298,15 +308,7 @@ def test_sfm_small_meets_accuracy_targets(small_sfm):
 
 def test_sfm_without_preprocess_sfm_images_names_them(tiny_capture: Path, tmp_path: Path):
     """A work directory from an older preprocess (no sfm.png / sfm_images.json): a clear error, nothing written."""
-    work = WorkDir.at(tmp_path / "w")
-    cap = open_capture(tiny_capture)
-    work.root.mkdir(parents=True)
-    work.capture_pointer.write_text(str(tiny_capture))
-    w, h = cap.stage.width // DOWNSCALE, cap.stage.height // DOWNSCALE
-    for v in cap.views():
-        work.view_dir(v).mkdir(parents=True)
-        cv2.imwrite(str(work.wellit(v)), np.full((h, w, 3), 90, np.uint8))
-        cv2.imwrite(str(work.mask(v)), np.full((h, w), 255, np.uint8))
+    work = flat_grey_views(tiny_capture, tmp_path / "w", sfm_images=False)
     with pytest.raises(
         LightstageError, match=r"no SfM image or mask for \d+ views \(000/cam00.*lightstage preprocess"
     ):
