@@ -5,7 +5,8 @@ textured object, a saturated bulb, a flare), then measures in one run:
   * OpenEXR decode-only time per frame, one library thread;
   * a per-step breakdown of the per-frame work (decode, downscale, write, statistics), one thread;
   * the whole stage (`run_preprocess`) on a dask LocalCluster with 1 and with 2 single-threaded worker
-    processes: wall time per frame, in-task time per frame, speed-up, peak RSS per worker;
+    processes: wall time per frame, in-task time per frame, speed-up, peak RSS per worker; the decode floor
+    again right before and after the 1-worker run, and on the other core throughout it (same minutes);
   * peak RSS per worker again with views twice as long (memory must not grow with the frames per view).
 Prints a JSON summary (and the ratios against the targets). Frames beyond the distinct ones are symlinks, so
 decoding cost is real while generation stays short.
