@@ -25,9 +25,8 @@ import numpy as np
 from lightstage.capture.layout import Capture, FrameId, ViewId
 from lightstage.capture.stage import Stage
 from lightstage.errors import LightstageError
+from lightstage.preprocess.stats import luminance
 from lightstage.workdir import DOWNSCALE, WorkDir
-
-LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
 
 
 @dataclass(frozen=True)
@@ -111,7 +110,7 @@ def detect_bulb(
     if not saturated.any():
         return None
     n, labels, stats, _ = cv2.connectedComponentsWithStats(saturated.astype(np.uint8), connectivity=8)
-    lum = rgb @ LUMA
+    lum = luminance(rgb)
     top = float(saturation)
     best: tuple[float, BulbDisc] | None = None
     for i in range(1, n):

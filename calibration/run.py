@@ -186,6 +186,11 @@ def gauge_with_lights(
     return reg, [lt for lt, k in zip(lights, keep, strict=True) if k], rejected
 
 
+def _rig_poses(reg) -> dict[str, tuple[np.ndarray, np.ndarray]]:  # noqa: ANN001 - register.Registration
+    """Camera id -> (R, t) camera-from-rig of a registration (what the bulb functions take)."""
+    return {c: (T.R, T.t) for c, T in reg.cam_from_rig.items()}
+
+
 def _preprocess_sfm_images(work: WorkDir, capture: Capture) -> tuple[dict[ViewId, tuple[Path, Path]], dict]:
     """Every view's (SfM image, feature mask) from preprocess and their common factor/size/exposure; a clear
     error naming the views when preprocess has not written them (run or rerun `lightstage preprocess`)."""
@@ -307,7 +312,7 @@ def _sfm_calibration(
         )
 
         intr_K = {c: K for c, (K, _) in intr.items()}
-        found = find_bulbs(work, capture, {c: (T.R, T.t) for c, T in reg.cam_from_rig.items()}, p_rig, intr_K)
+        found = find_bulbs(work, capture, _rig_poses(reg), p_rig, intr_K)
         K_proc = processed_intrinsics(stage, intr_K)
         light_sigma = config.light_prior_sigma_mm / 1000.0
         if config.bulbs_in_gauge and found.sightings:
@@ -315,7 +320,7 @@ def _sfm_calibration(
             # the first fit's frame, are mapped back to the SfM rig frame the gauge starts from).
             gauge_lights, pts, nom, sqrt_info = gauge_points(
                 found.sightings,
-                {c: (T.R, T.t) for c, T in reg.cam_from_rig.items()},
+                _rig_poses(reg),
                 p_rig,
                 K_proc,
                 mount_sigma_m=light_sigma,
@@ -331,7 +336,7 @@ def _sfm_calibration(
             )
         bulbs = locate_lights(
             found.sightings,
-            {c: (T.R, T.t) for c, T in reg.cam_from_rig.items()},
+            _rig_poses(reg),
             p_rig,
             K_proc,
             prior_sigma_m=light_sigma,

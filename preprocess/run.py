@@ -326,15 +326,13 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
     scores = flare_scores(lum_thumbs, sat_thumbs, mask, cfg.flare_dilate, job.cutoff, cfg.flare_thumb)
     lights = list(stats.lights)
     rejected = [lt for lt, s in zip(lights, scores, strict=True) if s > cfg.flare_threshold]
-    mean_lum = stats.mean @ np.array([0.2126, 0.7152, 0.0722], np.float32)
-    level = float(np.percentile(mean_lum[mask], cfg.exposure_percentile)) if mask.any() else 0.0
+    level = _foreground_level(stats.mean, mask, cfg.exposure_percentile)
     gt_iou = None
     if job.gt_mask and Path(job.gt_mask).is_file():
         gt_iou = iou(mask, read_gt_mask(job.gt_mask, (w, h)))
     sfm, sfm_lights = _sfm_image(work, job, set(lights) - set(rejected))
     sfm_mask = upsample_mask(mask, (sfm.shape[1], sfm.shape[0])) > 0
-    sfm_lum = sfm @ np.array([0.2126, 0.7152, 0.0722], np.float32)
-    sfm_level = float(np.percentile(sfm_lum[sfm_mask], cfg.exposure_percentile)) if sfm_mask.any() else 0.0
+    sfm_level = _foreground_level(sfm, sfm_mask, cfg.exposure_percentile)
 
     vdir = work.view_dir(view)
     _remove_stale_temps(vdir, ["stats", "mean", "sfm", "mask", "zones", "view"])
@@ -379,6 +377,13 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
     except OSError:
         pass
     return record
+
+
+def _foreground_level(rgb: np.ndarray, mask: np.ndarray, percentile: float) -> float:
+    """The luminance percentile of an image's foreground (0 without one): what the capture's exposure maps to 1."""
+    from lightstage.preprocess.stats import luminance
+
+    return float(np.percentile(luminance(rgb)[mask], percentile)) if mask.any() else 0.0
 
 
 def _sfm_image(work: WorkDir, job: ViewJob, usable: set[int]) -> tuple[np.ndarray, list[int]]:

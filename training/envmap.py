@@ -17,9 +17,10 @@ import numpy as np
 
 from lightstage.cameras import rotation_z
 from lightstage.errors import LightstageError
+from lightstage.preprocess.stats import LUMA
 
 # Rec. 709 / sRGB primaries luminance weights, used for the median-cut energy.
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+LUMINANCE = np.array(LUMA)  # float64: median cut sums many small energies
 DEFAULT_RESOLUTION = (32, 16)  # (width, height) as in the paper / NRTF
 
 
