@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from lightstage.cameras import pixel_rays, project
 from lightstage.capture.layout import Capture, FrameId, ViewId
 from lightstage.capture.stage import Stage
 from lightstage.errors import LightstageError
@@ -203,6 +204,7 @@ def find_bulbs(
     See `combine_discs` for how the groups' discs make one sighting.
     """
     from lightstage.preprocess.processed import read_processed
+    from lightstage.preprocess.segment import read_mask
 
     stage = capture.stage
     w, h = stage.width // DOWNSCALE, stage.height // DOWNSCALE
@@ -215,10 +217,10 @@ def find_bulbs(
         K = K_proc[cam.id]
         masks: dict[str, np.ndarray] = {}  # this camera's masks per group (read once, kept for one camera)
         for li, light in enumerate(stage.lights):
-            pc = R @ np.asarray(nominal_rig[li], np.float64) + t
-            if pc[2] <= 0:
+            p = np.asarray(nominal_rig[li], np.float64)
+            if (R @ p + t)[2] <= 0:  # behind the camera
                 continue
-            u, v = (K @ pc)[:2] / pc[2]
+            u, v = project(p, K, R, t)
             if not (margin_px <= u <= w - margin_px and margin_px <= v <= h - margin_px):
                 continue
             out.candidates += 1
@@ -234,8 +236,8 @@ def find_bulbs(
                     continue
                 out.frames_read += 1
                 if g not in masks:
-                    m = cv2.imread(str(work.mask(ViewId(g, cam.id))), cv2.IMREAD_GRAYSCALE)
-                    masks[g] = m > 127 if m is not None else np.zeros((h, w), bool)
+                    mask_path = work.mask(ViewId(g, cam.id))
+                    masks[g] = read_mask(mask_path) if mask_path.is_file() else np.zeros((h, w), bool)
                 disc = detect_bulb(
                     rgb, sat, masks[g], stage.saturation, near=(u, v), max_offset_px=max_offset_px
                 )
@@ -264,9 +266,7 @@ def _normal_equations(
             continue
         R, t = (np.asarray(x, np.float64) for x in cam_from_rig[s.camera])
         K = np.asarray(K_proc[s.camera], np.float64)
-        centre = -R.T @ t
-        d = R.T @ np.linalg.solve(K, np.array([s.uv[0], s.uv[1], 1.0]))
-        d /= np.linalg.norm(d)
+        centre, d = pixel_rays(np.asarray(s.uv, np.float64), K, R, t)
         sigma = float(np.linalg.norm(nominal_rig[s.light] - centre)) * pixel_sigma / K[0, 0]
         P = (np.eye(3) - np.outer(d, d)) / sigma**2
         A, b, cams = out.get(s.light, (np.zeros((3, 3)), np.zeros(3), []))

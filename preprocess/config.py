@@ -18,9 +18,9 @@ class PreprocessConfig:
     the simulator and sized for the reference stage)."""
 
     # ---- downscale / output frames
-    # processed frames: rle | piz | zip | none (lossless only). RLE is the default because it keeps the stage
-    # within 1.3x of the raw decode (0.07 CPU-s per 2048x1366 frame); PIZ (wavelet) makes frames 31% smaller
-    # at 2x that write time, ZIP is as small as PIZ and slower still (docs/benchmarks.md).
+    # processed frames: rle | piz | zip | none (lossless only). RLE is the default: the cheapest compressed write
+    # (0.105 CPU-s per 2048x1366 RGBS frame, 16.4 MB); PIZ (wavelet) makes frames 31% smaller for 0.13 CPU-s,
+    # ZIP is as small as PIZ at 0.22 (docs/benchmarks.md, 2026-11-23).
     compression: str = "rle"
     band_rows: int = 32  # raw rows decoded and downscaled per band (multiple of 4): stays in cache
     # ---- scheduling

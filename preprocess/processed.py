@@ -63,11 +63,11 @@ def write_processed(
     path: str | os.PathLike[str],
     rgb_planes: np.ndarray,
     saturated: np.ndarray,
-    compression: str = "piz",
+    compression: str,
     attributes: dict[str, str | float | int] | None = None,
 ) -> None:
     """Write a processed frame atomically from (3, h, w) half R, G, B planes (see `HalfRounder`) and (h, w)
-    bool saturation flags."""
+    bool saturation flags; `compression` is the stage config's (its default lives there)."""
     rgb_planes = np.asarray(rgb_planes)
     if rgb_planes.ndim != 3 or rgb_planes.shape[0] != 3 or rgb_planes.shape[1:] != saturated.shape:
         raise LightstageError(
