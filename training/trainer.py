@@ -194,10 +194,7 @@ def fit(
             bar.set_postfix(loss=f"{loss_value:.4g}")
             t_window, rays_window, window_losses = now, 0, []
         if cfg.eval.every and step % cfg.eval.every == 0 and writer_rank and test_images:
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-            now = time.perf_counter()
-            train_seconds += now - t_mark
+            train_seconds, t_mark = _lap(train_seconds, t_mark, device)
             psnrs = preview(
                 model,
                 test_images[: cfg.eval.images],
@@ -211,8 +208,7 @@ def fit(
             bar.write(f"step {step}: test PSNR {np.mean(psnrs):.2f} dB on {len(psnrs)} image(s)")
             t_mark = time.perf_counter()  # evaluation time is not training time
         if step % cfg.checkpoint_every == 0 or step == total:
-            now = time.perf_counter()
-            train_seconds, t_mark = train_seconds + now - t_mark, now
+            train_seconds, t_mark = _lap(train_seconds, t_mark, device)
             _save(ckpt_path, model, opt, sched, scaler, step, world, stats, cfg, writer_rank, train_seconds)
             if log is not None:
                 log.flush(plot=True)
@@ -237,6 +233,14 @@ def fit(
     if model_out is not None:
         model_out.append(model)
     return summary
+
+
+def _lap(train_seconds: float, t_mark: float, device: torch.device) -> tuple[float, float]:
+    """Add the optimiser time since `t_mark` to `train_seconds` (after the GPU's queued work); a new mark."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    now = time.perf_counter()
+    return train_seconds + now - t_mark, now
 
 
 def _save(path, model, opt, sched, scaler, step, world, stats, cfg, writer_rank, train_seconds=0.0) -> None:
