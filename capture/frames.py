@@ -71,6 +71,7 @@ class FrameHeader:
     parts: int = 1
     decode_bytes: int = 0  # what decoding every channel of every part allocates
     chunk_problem: str | None = None  # set when the chunk table shows truncation / an unfinished file
+    part_channels: tuple[tuple[str, ...], ...] = ()  # channel names of every part, in file order
 
     @property
     def dtype(self) -> str:
@@ -168,6 +169,7 @@ def read_exr_header(path: str | os.PathLike[str]) -> FrameHeader:
         parts=len(parts),
         decode_bytes=decode_bytes,
         chunk_problem=chunk_problem,
+        part_channels=tuple(tuple(p.channels) for p in parts),
     )
 
 
@@ -538,24 +540,63 @@ def write_exr_planes(
     compression: str = "zip",
     attributes: dict[str, str | float | int] | None = None,
 ) -> None:
-    """Write named (H, W) half/float planes as a scanline EXR, atomically, without repacking them.
+    """Write named (H, W) half/float planes as a scanline EXR, atomically, without repacking them."""
+    write_exr_parts(path, [ExrPart("", planes, compression)], attributes=attributes)
 
+
+@dataclass(frozen=True)
+class ExrPart:
+    """One part of an EXR file: its name (unused for single-part files), planes and compression."""
+
+    name: str
+    planes: dict[str, np.ndarray]
+    compression: str
+
+
+def write_exr_parts(
+    path: str | os.PathLike[str],
+    parts: list[ExrPart],
+    *,
+    tile: int | None = None,
+    attributes: dict[str, str | float | int] | None = None,
+) -> None:
+    """Write an EXR of one or more parts atomically, scanline or in `tile` x `tile` tiles; `attributes` go in
+    the first part's header.
+
+    Each part has its own compression, so e.g. noisy colour planes can go uncompressed next to RLE flags.
+    Tiles make few large chunks: OpenEXR's per-chunk cost dominates an uncompressed scanline write.
     The bindings silently write wrong pixels from non-contiguous arrays, so every plane must be C-contiguous.
     """
     import OpenEXR
 
-    for name, plane in planes.items():
-        if plane.ndim != 2 or not plane.flags.c_contiguous or plane.dtype not in (np.float16, np.float32):
-            raise LightstageError(
-                f"{path}: EXR plane {name!r} must be a C-contiguous 2-D half/float array, "
-                f"got {plane.dtype} {plane.shape}"
-            )
-    header: dict[str, Any] = {"compression": _exr_compression(compression), "type": OpenEXR.scanlineimage}
+    headers = []
+    for part in parts:
+        for name, plane in part.planes.items():
+            if plane.ndim != 2 or not plane.flags.c_contiguous or plane.dtype not in (np.float16, np.float32):
+                raise LightstageError(
+                    f"{path}: EXR plane {name!r} must be a C-contiguous 2-D half/float array, "
+                    f"got {plane.dtype} {plane.shape}"
+                )
+        header: dict[str, Any] = {"compression": _exr_compression(part.compression)}
+        if tile is None:
+            header["type"] = OpenEXR.scanlineimage
+        else:
+            tiles = OpenEXR.TileDescription()
+            tiles.xSize = tiles.ySize = tile
+            tiles.mode = OpenEXR.ONE_LEVEL
+            header.update(type=OpenEXR.tiledimage, tiles=tiles)
+        headers.append(header)
     for k, v in (attributes or {}).items():
-        header[k] = v if isinstance(v, str) else float(v)
+        headers[0][k] = v if isinstance(v, str) else float(v)
+    if len(parts) == 1:
+        exr = OpenEXR.File(headers[0], parts[0].planes)
+    else:
+        exr = OpenEXR.File(
+            [OpenEXR.Part(h, p.planes, name=p.name) for h, p in zip(headers, parts, strict=True)]
+        )
     with atomic_path(path) as tmp:
         try:
-            OpenEXR.File(header, planes).write(str(tmp))
+            exr.write(str(tmp))
         except Exception as e:
             raise LightstageError(f"{path}: cannot write EXR ({_reason(e)})") from None
 

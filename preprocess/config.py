@@ -18,10 +18,10 @@ class PreprocessConfig:
     the simulator and sized for the reference stage)."""
 
     # ---- downscale / output frames
-    # processed frames: rle | piz | zip | none (lossless only). RLE is the default: the cheapest compressed write
-    # (0.105 CPU-s per 2048x1366 RGBS frame, 16.4 MB); PIZ (wavelet) makes frames 31% smaller for 0.13 CPU-s,
-    # ZIP is as small as PIZ at 0.22 (docs/benchmarks.md, 2026-11-23).
-    compression: str = "rle"
+    # compression of the processed frames' colour part: none | rle | piz | zip (lossless only; the saturation
+    # flags are always RLE). Noisy HDR colour barely compresses, so "none" is the default: 16.9 MB per 2048x1366
+    # frame for the cheapest write; "piz" makes frames ~1/3 smaller for more CPU (docs/benchmarks.md).
+    compression: str = "none"
     band_rows: int = 32  # raw rows decoded and downscaled per band (multiple of 4): stays in cache
     # ---- scheduling
     chunk_lights: int = 32  # lights per task: a chunk's partial statistics merge with the others in a tree

@@ -1,5 +1,10 @@
 """The processed frame on disk (WorkDir.frame): half EXR with channels R, G, B and S (1 = saturated source).
 
+Layout: two parts in 256x256 tiles, "rgb" (R, G, B, the stage config's compression) and "saturation" (S, RLE).
+Noisy HDR colour barely compresses (RLE saves 2%), while the flags RLE to almost nothing, and tiles make few
+large chunks: that writes 3x cheaper than one RLE scanline part of the same size (docs/benchmarks.md).
+Frames written as one scanline part with all four channels (before 2026-11-23 night) read the same.
+
 `write_processed` / `read_processed` are the one writer and reader; `processed_ok` is the resume check.
 Writes are atomic (temp file + rename), so a file under the final name is always complete; the check
 still parses the header and the chunk table so a truncated or foreign file is not taken as done.
@@ -12,10 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
-from lightstage.capture.frames import read_exr_header, write_exr_planes
+from lightstage.capture.frames import ExrPart, read_exr_header, write_exr_parts
 from lightstage.errors import LightstageError
 
 CHANNELS = "RGBS"
+TILE = 256  # tile side of the processed frames; OpenEXR's per-chunk cost is negligible at 48 tiles per part
+FLAGS_COMPRESSION = "rle"
 
 
 def to_half(x: np.ndarray) -> np.ndarray:
@@ -74,8 +81,11 @@ def write_processed(
             f"{path}: expected (3, h, w) RGB planes and (h, w) flags, got {rgb_planes.shape} and {saturated.shape}"
         )
     planes = {c: np.ascontiguousarray(rgb_planes[i], dtype=np.float16) for i, c in enumerate("RGB")}
-    planes["S"] = _flags_to_half(saturated)
-    write_exr_planes(path, planes, compression=compression, attributes=attributes)
+    parts = [
+        ExrPart("rgb", planes, compression),
+        ExrPart("saturation", {"S": _flags_to_half(saturated)}, FLAGS_COMPRESSION),
+    ]
+    write_exr_parts(path, parts, tile=TILE, attributes=attributes)
 
 
 def read_processed(
@@ -97,11 +107,13 @@ def read_processed_half(
     _check(header, expected_size)
     try:
         f = OpenEXR.File(str(path), separate_channels=True)
-        ch = f.parts[0].channels
+        ch = {name: c for part in f.parts for name, c in part.channels.items()}
         rgb = np.stack([ch[c].pixels for c in "RGB"], axis=-1)
         sat = ch["S"].pixels > 0.5
     except Exception as e:  # noqa: BLE001 - decoder failures become one clear message
         raise LightstageError(f"{path}: corrupt processed frame ({str(e).strip()[:200]})") from None
+    if sat.shape != rgb.shape[:2]:
+        raise LightstageError(f"{path}: saturation flags are {sat.shape}, the colour planes {rgb.shape[:2]}")
     if rgb.dtype != np.float16:
         rgb = rgb.astype(np.float16)
     return rgb, sat
@@ -128,7 +140,8 @@ def _check(header, expected_size: tuple[int, int] | None) -> None:  # noqa: ANN0
             f"{header.path}: processed frame is {header.width}x{header.height}, "
             f"expected {expected_size[0]}x{expected_size[1]}"
         )
-    missing = [c for c in CHANNELS if c not in header.channels]
+    present = {name for part in header.part_channels for name in part} or set(header.channels)
+    missing = [c for c in CHANNELS if c not in present]
     if missing:
         raise LightstageError(f"{header.path}: processed frame lacks channel(s) {', '.join(missing)}")
 

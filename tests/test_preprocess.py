@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import yaml
 
-from lightstage.capture.frames import write_exr
+from lightstage.capture.frames import read_exr_header, write_exr, write_exr_planes
 from lightstage.capture.layout import FrameId, ViewId, open_capture
 from lightstage.errors import LightstageError
 from lightstage.preprocess.config import PreprocessConfig
@@ -28,7 +28,13 @@ from lightstage.preprocess.downscale import (
     downscale_reference,
     saturation_half,
 )
-from lightstage.preprocess.processed import HalfRounder, processed_ok, read_processed, write_processed
+from lightstage.preprocess.processed import (
+    HalfRounder,
+    processed_ok,
+    read_processed,
+    read_processed_half,
+    write_processed,
+)
 from lightstage.preprocess.run import run_preprocess
 from lightstage.preprocess.stats import StatsAccumulator, direct_stats, merge_tree
 from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND, WorkDir
@@ -123,6 +129,38 @@ def test_processed_frame_roundtrip_and_validity(tmp_path: Path, compression: str
     (tmp_path / "cut.exr").write_bytes(data[: len(data) // 2])  # what a non-atomic killed write would leave
     assert not processed_ok(tmp_path / "cut.exr", (12, 8))
     assert not processed_ok(tmp_path / "absent.exr", (12, 8))
+
+
+def test_processed_frame_layout_is_two_tiled_parts_and_the_older_layout_still_reads(tmp_path: Path) -> None:
+    """Colour and flags are separate parts (each its own compression) in tiles; one-part scanline RGBS frames
+    (the layout before the tiled one) read the same, and a frame without flags is refused by name."""
+    rng = np.random.default_rng(5)
+    h, w = 300, 520  # more than one tile each way, partial tiles at the edges
+    planes = rng.lognormal(-2, 1, (3, h, w)).astype(np.float16)
+    sat = rng.random((h, w)) < 0.01
+    path = tmp_path / "f.exr"
+    write_processed(path, planes, sat, "none", attributes={"source": "raw.exr"})
+    header = read_exr_header(path)
+    assert header.parts == 2 and header.tiled
+    assert header.part_channels == (("B", "G", "R"), ("S",))
+    assert header.attributes["source"] == "raw.exr"
+    rgb, flags = read_processed_half(path, (w, h))
+    np.testing.assert_array_equal(rgb, planes.transpose(1, 2, 0))
+    np.testing.assert_array_equal(flags, sat)
+
+    legacy = tmp_path / "legacy.exr"
+    old = {c: np.ascontiguousarray(planes[i]) for i, c in enumerate("RGB")}
+    write_exr_planes(legacy, {**old, "S": sat.astype(np.float16)}, compression="rle")
+    assert read_exr_header(legacy).parts == 1 and processed_ok(legacy, (w, h))
+    rgb, flags = read_processed_half(legacy, (w, h))
+    np.testing.assert_array_equal(rgb, planes.transpose(1, 2, 0))
+    np.testing.assert_array_equal(flags, sat)
+
+    no_flags = tmp_path / "no_flags.exr"
+    write_exr_planes(no_flags, old, compression="none")
+    assert not processed_ok(no_flags, (w, h))
+    with pytest.raises(LightstageError, match=r"no_flags\.exr: processed frame lacks channel\(s\) S"):
+        read_processed_half(no_flags, (w, h))
 
 
 # ---- statistics -------------------------------------------------------------------------------------------------
