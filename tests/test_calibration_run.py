@@ -246,7 +246,9 @@ def small_sfm(tmp_path_factory: pytest.TempPathFactory) -> tuple[WorkDir, dict, 
     cap = simulate_capture(root / "capture", preset="small", seed=0, lights=lights, progress=False)
     work = WorkDir.at(root / "work")
     real_preprocess(cap, work)
-    summary = run_calibrate(work, CalibrateConfig(method="sfm"), progress=False)
+    # One pycolmap thread: COLMAP's multi-threaded matching and RANSAC are not deterministic, one thread is, so
+    # the accuracy asserted below is the same on every run of the same code.
+    summary = run_calibrate(work, CalibrateConfig(method="sfm", num_threads=1), progress=False)
     return work, summary, cap
 
 
@@ -289,20 +291,27 @@ def test_sfm_small_registers_every_view_and_exports_match(small_sfm):
 
 @pytest.mark.slow
 @pytest.mark.timeout(1800)
-@pytest.mark.xfail(
-    reason="issue 6 targets not all met on this subset (6 lights, seed 0; SfM on the preprocess images, "
-    "2026-11-23): rotation 0.035 / 0.065 deg mean / max and yaw max 0.0075 deg (within target), but camera centre "
-    "1.60 / 2.61 mm (gauge floor ~2.1-2.2 mm max on this seed) and lights 5.15 / 8.17 mm (1 of 6 lights observed; "
-    "unobserved lights keep their nominal positions, floor 5.82 / 7.31 mm); the SfM max errors also vary from run "
-    "to run (docs/calibration.md, Status)",
-    strict=False,
-)
-def test_sfm_small_meets_accuracy_targets(small_sfm):
+def test_sfm_small_meets_rotation_and_yaw_targets(small_sfm):
+    """Issue 6's rotation and yaw targets, and the SfM's own shape (its error after the best similarity)."""
     work, _, _ = small_sfm
     gt = json.loads(work.report("calibration").read_text())["ground_truth"]
     assert gt["raw"]["rotation_error_deg"]["max"] <= 0.1
-    assert gt["raw"]["camera_centre_error_mm"]["max"] <= 2.0
     assert gt["yaw_error_deg"]["max"] <= 0.05
+    assert gt["aligned"]["rotation_error_deg"]["max"] <= 0.08  # 0.036 measured; 0.13-0.17 when it went wrong
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+@pytest.mark.xfail(
+    reason="issue 6's camera-centre and light targets are not met: the centre max sits at the gauge's floor "
+    "(~2.1-2.3 mm on seeds 0 and 1 with 32 lights), and unobserved lights keep their nominal positions (floor "
+    "5.82 / 7.31 mm mean / max on this 6-light subset, 4.99 / 8.27 mm on the full capture; docs/calibration.md)",
+    strict=False,
+)
+def test_sfm_small_meets_centre_and_light_targets(small_sfm):
+    work, _, _ = small_sfm
+    gt = json.loads(work.report("calibration").read_text())["ground_truth"]
+    assert gt["raw"]["camera_centre_error_mm"]["max"] <= 2.0
     assert gt["raw"]["light_position_error_mm"]["max"] <= 5.0
 
 
