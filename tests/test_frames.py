@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lightstage.capture.frames import read_exr, read_exr_header, read_image, write_exr, write_image
+from lightstage.capture.frames import (
+    read_exr,
+    read_exr_header,
+    read_image,
+    write_exr,
+    write_exr_planes,
+    write_image,
+)
 from lightstage.errors import LightstageError
 
 
@@ -78,3 +85,16 @@ def test_other_formats_through_openimageio(tmp_path):
     np.testing.assert_allclose(read_image(tmp_path / "a.png"), u8 / 255.0, atol=1e-6)
     write_image(tmp_path / "a.tif", img)
     np.testing.assert_allclose(read_image(tmp_path / "a.tif"), img)
+
+
+def test_exr_writers_leave_the_callers_planes_alone(tmp_path):
+    """OpenEXR's bindings swap the arrays of the dict they get for Channel objects; ours must not leak that."""
+    from lightstage.capture.frames import ExrPart, write_exr_parts
+
+    planes = {c: np.full((5, 7), i, np.float16) for i, c in enumerate("RGB")}
+    write_exr_planes(tmp_path / "a.exr", planes, compression="rle")
+    write_exr_parts(
+        tmp_path / "b.exr", [ExrPart("rgb", planes, "none"), ExrPart("s", {"S": planes["R"]}, "rle")]
+    )
+    assert all(isinstance(p, np.ndarray) for p in planes.values())
+    write_exr_planes(tmp_path / "c.exr", planes, compression="zip")  # the same dict again
