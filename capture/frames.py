@@ -588,15 +588,18 @@ def write_exr_parts(
         headers.append(header)
     for k, v in (attributes or {}).items():
         headers[0][k] = v if isinstance(v, str) else float(v)
-    # The bindings replace the arrays of the dict they are given with Channel objects: hand them copies.
-    if len(parts) == 1:
-        exr = OpenEXR.File(headers[0], dict(parts[0].planes))
-    else:
-        exr = OpenEXR.File(
-            [OpenEXR.Part(h, dict(p.planes), name=p.name) for h, p in zip(headers, parts, strict=True)]
-        )
     with atomic_path(path) as tmp:
         try:
+            # The bindings replace the arrays of the dict they are given with Channel objects: hand them copies.
+            if len(parts) == 1:
+                exr = OpenEXR.File(headers[0], dict(parts[0].planes))
+            else:
+                exr = OpenEXR.File(
+                    [
+                        OpenEXR.Part(h, dict(p.planes), name=p.name)
+                        for h, p in zip(headers, parts, strict=True)
+                    ]
+                )
             exr.write(str(tmp))
         except Exception as e:
             raise LightstageError(f"{path}: cannot write EXR ({_reason(e)})") from None
