@@ -383,7 +383,8 @@ def test_sfm_image_of_a_view_is_the_trimmed_mean_of_raw_frames(tiny_run, tiny_ca
     rejected = set(report["rejected_frames"])
     for view in (ViewId("040", "cam01"), *[ViewId(*f.split("/")[:2]) for f in sorted(rejected)[:2]]):
         record = json.loads((work.view_dir(view) / "view.json").read_text())
-        chosen = [lt for lt in spread_lights(list(range(12)), 8) if f"{view}/{lt:03d}" not in rejected]
+        count = PreprocessConfig().sfm_lights  # what tiny_run used
+        chosen = [lt for lt in spread_lights(list(range(12)), count) if f"{view}/{lt:03d}" not in rejected]
         assert record["sfm_lights"] == chosen
         raw = [read_exr(cap.frame_path(FrameId(view.group, view.camera, lt))) for lt in chosen]
         hdr = read_exr(work.sfm_hdr(view)).astype(np.float32)
