@@ -694,7 +694,7 @@ def write_previews(
     WORK/preprocess/sfm_images.json); views whose previews already use those exposures are skipped."""
     from lightstage.capture.frames import read_exr, write_image
     from lightstage.preprocess.segment import overlay, read_mask, zone_map
-    from lightstage.preprocess.sfm_image import sfm_image_factor, upsample_mask
+    from lightstage.preprocess.sfm_image import sfm_image_factor, spread_lights, upsample_mask
     from lightstage.tonemap import tonemap_u8
 
     def auto(levels: list[float]) -> float:
@@ -743,7 +743,9 @@ def write_previews(
     if jobs:
         W, H = jobs[0].raw_size
         f = sfm_image_factor(W, H, config.sfm_max_side)
-        info = {"factor": f, "size": [W // f, H // f], "lights": config.sfm_lights, "exposure": sfm_exposure}
+        # the lights each view's image is built from, before its own bad and rejected frames are left out
+        lights = len(spread_lights(list(jobs[0].lights), config.sfm_lights))
+        info = {"factor": f, "size": [W // f, H // f], "lights": lights, "exposure": sfm_exposure}
         write_json_atomic(work.sfm_info, info)
     return exposure
 

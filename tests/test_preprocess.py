@@ -379,6 +379,7 @@ def test_sfm_image_of_a_view_is_the_trimmed_mean_of_raw_frames(tiny_run, tiny_ca
     cap = open_capture(tiny_capture)
     info = json.loads(work.sfm_info.read_text())
     assert info["factor"] == 1 and info["size"] == [256, 172] and info["exposure"] > 0
+    assert info["lights"] == min(12, PreprocessConfig().sfm_lights)  # tiny has 12 lights
     report = json.loads(work.report("preprocess").read_text())
     rejected = set(report["rejected_frames"])
     for view in (ViewId("040", "cam01"), *[ViewId(*f.split("/")[:2]) for f in sorted(rejected)[:2]]):
@@ -409,7 +410,8 @@ def test_sfm_image_at_processed_resolution(tiny_capture: Path, tmp_path: Path) -
     frames = [read_processed(work.frame(FrameId("000", "cam00", lt)))[0] for lt in record["sfm_lights"]]
     hdr = read_exr(work.sfm_hdr(view)).astype(np.float32)
     np.testing.assert_allclose(hdr, np.mean(frames, axis=0), rtol=2e-3, atol=1e-6)
-    assert json.loads(work.sfm_info.read_text())["size"] == [64, 43]
+    info = json.loads(work.sfm_info.read_text())
+    assert info["size"] == [64, 43] and info["lights"] == 3
 
 
 def test_killed_run_resumes_with_identical_outputs(tiny_capture: Path, tmp_path: Path) -> None:
