@@ -333,7 +333,7 @@ def main() -> None:
             {"wall": round(a, 4), "cpu": round(b, 4)} for a, b in floors
         ]
         if concurrent is not None:
-            cw, cc = concurrent.mean()
+            cw, cc = concurrent.mean()  # the ratios below use it too
             result["decode_only_concurrent_with_1_worker_s"] = {
                 "wall": round(cw, 4),
                 "cpu": round(cc, 4),
@@ -358,7 +358,6 @@ def main() -> None:
             "targets": "per frame <= 1.3 x decode, speed-up >= 1.7, peak RSS per worker <= 1536 MB",
         }
         if concurrent is not None:
-            cw, cc = concurrent.mean()
             result["ratios"]["against_the_concurrent_floor"] = {
                 "task_cpu": round(one["task_cpu_per_frame_s"] / cc, 3),
                 "task_wall": round(one["task_per_frame_s"] / cw, 3),

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from lightstage.cameras import pixel_rays, project
+from lightstage.cameras import pixel_rays, project, world_to_camera
 from lightstage.capture.layout import Capture, FrameId, ViewId
 from lightstage.capture.stage import Stage
 from lightstage.errors import LightstageError
@@ -218,7 +218,7 @@ def find_bulbs(
         masks: dict[str, np.ndarray] = {}  # this camera's masks per group (read once, kept for one camera)
         for li, light in enumerate(stage.lights):
             p = np.asarray(nominal_rig[li], np.float64)
-            if (R @ p + t)[2] <= 0:  # behind the camera
+            if world_to_camera(p, R, t)[2] <= 0:  # behind the camera
                 continue
             u, v = project(p, K, R, t)
             if not (margin_px <= u <= w - margin_px and margin_px <= v <= h - margin_px):

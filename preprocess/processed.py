@@ -140,7 +140,7 @@ def _check(header, expected_size: tuple[int, int] | None) -> None:  # noqa: ANN0
             f"{header.path}: processed frame is {header.width}x{header.height}, "
             f"expected {expected_size[0]}x{expected_size[1]}"
         )
-    present = {name for part in header.part_channels for name in part} or set(header.channels)
+    present = {name for part in header.part_channels for name in part}
     missing = [c for c in CHANNELS if c not in present]
     if missing:
         raise LightstageError(f"{header.path}: processed frame lacks channel(s) {', '.join(missing)}")
