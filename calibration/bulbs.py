@@ -7,12 +7,9 @@ camera) the disc centre is taken from the processed frames of the groups where t
 neither partly hidden nor cut by the image border; clear of the object mask, or confirmed by several groups):
 a `BulbSighting` (`find_bulbs`). Sightings do not depend on the rig's gauge, so they are found once and turned
 into rays for any rig estimate:
-- `gauge_points`: the observed lights as extra nominal points for the world-frame gauge (`register.fit_gauge`):
-  a light seen by two or more cameras is triangulated, one seen by a single camera constrains the 2 coordinates
-  across its ray; the weight combines the ray precision and the light's mounting tolerance.
-- `locate_lights`: the final rig-frame positions, the rays combined with the nominal position as a prior
-  (per-axis `prior_sigma`): with one camera this moves the light onto its ray, with two or more it triangulates
-  it. Lights never seen keep their nominal positions.
+`bulb_rays` turns them into `light_rays.LightRay`s: a light seen by two or more cameras is triangulated, one
+seen by a single camera constrains the 2 coordinates across its ray (`light_rays.locate_lights`,
+`light_rays.gauge_points`).
 """
 
 from __future__ import annotations
@@ -22,6 +19,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from lightstage.calibration.light_rays import LightRay
 from lightstage.cameras import pixel_rays, project, world_to_camera
 from lightstage.capture.layout import Capture, FrameId, ViewId
 from lightstage.capture.stage import Stage
@@ -50,15 +48,6 @@ class BulbSightings:
     frames_read: int = 0
     unconfirmed: int = 0  # pairs with round discs, but touching the mask and agreeing in too few groups
     read_errors: list[str] = field(default_factory=list)
-
-
-@dataclass
-class BulbEstimate:
-    """Rig-frame light positions (metres) and how each was obtained."""
-
-    positions: np.ndarray  # (L, 3) stage rig frame
-    cameras_per_light: dict[int, list[str]] = field(default_factory=dict)  # light -> cameras that saw it
-    shift_mm: dict[int, float] = field(default_factory=dict)  # light -> distance from nominal
 
 
 def processed_intrinsics(
@@ -251,79 +240,20 @@ def find_bulbs(
     return out
 
 
-def _normal_equations(
+def bulb_rays(
     sightings: list[BulbSighting],
     cam_from_rig: dict[str, tuple[np.ndarray, np.ndarray]],
-    nominal_rig: np.ndarray,
     K_proc: dict[str, np.ndarray],
-    pixel_sigma: float,
-) -> dict[int, tuple[np.ndarray, np.ndarray, list[str]]]:
-    """Per light: A = sum P_i / s_i^2 and b = sum P_i c_i / s_i^2 over its rays (P_i projects across ray i
-    from camera centre c_i; s_i = depth * pixel_sigma / fx, metres), and the cameras that saw it."""
-    out: dict[int, tuple[np.ndarray, np.ndarray, list[str]]] = {}
+    pixel_sigma: float = 0.1,
+) -> list[LightRay]:
+    """Each sighting as a ray from its camera centre through the disc centre (rig frame of `cam_from_rig`,
+    metres; `K_proc`: processed-resolution K per camera); angular std `pixel_sigma` / fx."""
+    rays = []
     for s in sightings:
         if s.camera not in cam_from_rig:
             continue
         R, t = (np.asarray(x, np.float64) for x in cam_from_rig[s.camera])
         K = np.asarray(K_proc[s.camera], np.float64)
         centre, d = pixel_rays(np.asarray(s.uv, np.float64), K, R, t)
-        sigma = float(np.linalg.norm(nominal_rig[s.light] - centre)) * pixel_sigma / K[0, 0]
-        P = (np.eye(3) - np.outer(d, d)) / sigma**2
-        A, b, cams = out.get(s.light, (np.zeros((3, 3)), np.zeros(3), []))
-        out[s.light] = (A + P, b + P @ centre, [*cams, s.camera])
-    return out
-
-
-def locate_lights(
-    sightings: list[BulbSighting],
-    cam_from_rig: dict[str, tuple[np.ndarray, np.ndarray]],
-    nominal_rig: np.ndarray,
-    K_proc: dict[str, np.ndarray],
-    prior_sigma_m: float = 0.003,
-    pixel_sigma: float = 0.1,
-) -> BulbEstimate:
-    """Rig-frame light positions: each observed light at the least-squares point of its rays (stage rig frame of
-    `cam_from_rig`, metres; `K_proc`: processed-resolution K per camera) with its nominal position as prior;
-    unobserved lights at their nominal positions."""
-    nominal_rig = np.asarray(nominal_rig, np.float64)
-    est = BulbEstimate(nominal_rig.copy())
-    for li, (A, b, cams) in sorted(
-        _normal_equations(sightings, cam_from_rig, nominal_rig, K_proc, pixel_sigma).items()
-    ):
-        w = 1.0 / prior_sigma_m**2
-        est.positions[li] = np.linalg.solve(A + w * np.eye(3), b + w * nominal_rig[li])
-        est.cameras_per_light[li] = cams
-        est.shift_mm[li] = float(1000.0 * np.linalg.norm(est.positions[li] - nominal_rig[li]))
-    return est
-
-
-def gauge_points(
-    sightings: list[BulbSighting],
-    cam_from_rig: dict[str, tuple[np.ndarray, np.ndarray]],
-    nominal_rig: np.ndarray,
-    K_proc: dict[str, np.ndarray],
-    mount_sigma_m: float = 0.003,
-    pixel_sigma: float = 0.1,
-) -> tuple[list[int], np.ndarray, np.ndarray, np.ndarray]:
-    """Observed lights as extra points of the gauge fit: (lights, points in the frame of `cam_from_rig`, their
-    nominal positions, (N, 3, 3) square-root information matrices in metres^-1).
-
-    A light's point is the least-squares point of its rays (for a single ray: the ray's point closest to the
-    nominal position). The nominal position misses the true one by the mounting tolerance `mount_sigma_m` per
-    axis, and the rays fix the true one with information A, so the residual point - nominal has information
-    A (I + sigma^2 A)^-1: isotropic for a triangulated light, zero along the ray of a light seen once.
-    """
-    nominal_rig = np.asarray(nominal_rig, np.float64)
-    lights, pts, nom, sqrt_info = [], [], [], []
-    eqs = _normal_equations(sightings, cam_from_rig, nominal_rig, K_proc, pixel_sigma)
-    for li, (A, b, _) in sorted(eqs.items()):
-        eps = 1e-6 * np.trace(A)  # fixes the along-ray coordinate of a single ray at the nominal position
-        pts.append(np.linalg.solve(A + eps * np.eye(3), b + eps * nominal_rig[li]))
-        info = A @ np.linalg.inv(np.eye(3) + mount_sigma_m**2 * A)
-        vals, vecs = np.linalg.eigh(0.5 * (info + info.T))
-        sqrt_info.append(vecs @ np.diag(np.sqrt(np.clip(vals, 0.0, None))) @ vecs.T)
-        nom.append(nominal_rig[li])
-        lights.append(li)
-    if not lights:
-        return [], np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3))
-    return lights, np.stack(pts), np.stack(nom), np.stack(sqrt_info)
+        rays.append(LightRay(s.light, centre, d, pixel_sigma / K[0, 0], f"bulb {s.camera}"))
+    return rays

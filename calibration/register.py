@@ -88,6 +88,7 @@ def fit_gauge(
     src_extra: np.ndarray | None = None,
     dst_extra: np.ndarray | None = None,
     extra_sigma: float | np.ndarray = 0.003,
+    scale_prior: tuple[float, float] | None = None,
 ) -> Similarity:
     """Maximum-likelihood similarity x -> s R x + t putting a recovered rig onto the nominal (drawn) one.
 
@@ -95,15 +96,17 @@ def fit_gauge(
     world-to-camera rotations `src_rot` (N, 3, 3), which become src_rot R^T, should match `dst_rot` (per-axis
     error `rotation_sigma_deg`); optional extra points (e.g. observed lights) likewise with `extra_sigma`: one
     sigma, one per point (N,), or per-point (N, 3, 3) square-root information matrices L (residual L (S x - y),
-    for points known only across a ray). Starts from the Umeyama fit of the points; with positions alone it is
-    that fit.
+    for points known only across a ray). `scale_prior` = (s, relative std): a scale measured independently
+    (e.g. by a ball of known radius), which the drawings' positions can only estimate to their tolerance over
+    the rig's size. Starts from the Umeyama fit of the points; with positions alone it is that fit.
     """
     from scipy.optimize import least_squares
 
     S0 = umeyama(src, dst)
     use_rot = src_rot is not None and dst_rot is not None and rotation_sigma_deg > 0
     use_extra = src_extra is not None and dst_extra is not None and len(src_extra) > 0
-    if not use_rot and not use_extra:
+    use_scale = scale_prior is not None
+    if not use_rot and not use_extra and not use_scale:
         return S0
     src, dst = np.asarray(src, float), np.asarray(dst, float)
     sig_r = np.deg2rad(rotation_sigma_deg)
@@ -132,6 +135,8 @@ def fit_gauge(
             out.append(err.as_rotvec().ravel() / sig_r)
         if use_extra:
             out.append(np.einsum("nij,nj->ni", L_extra, S.apply(src_extra) - dst_extra).ravel())
+        if use_scale:
+            out.append(np.array([np.log(S.scale / scale_prior[0]) / scale_prior[1]]))
         return np.concatenate(out)
 
     sol = least_squares(residuals, np.zeros(7), x_scale=np.r_[np.full(3, 1e-3), 1e-3, np.full(3, 1e-3)])
@@ -248,6 +253,7 @@ def register_rig(
     position_sigma_m: float = 0.003,
     rotation_sigma_deg: float = 0.0,
     extra_points: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    scale_prior: tuple[float, float] | None = None,
 ) -> Registration:
     """Register a recovered rig (SfM frame, arbitrary similarity) to the world frame (see the module doc).
 
@@ -256,7 +262,8 @@ def register_rig(
     `group_order[0]` is the reference group. With `nominal_rotations` (camera id -> nominal rig-frame
     world-to-camera rotation) and `rotation_sigma_deg` > 0 the gauge also fits the camera orientations
     (`fit_gauge`); `extra_points` = (recovered rig-frame points, nominal positions, sigmas in metres or
-    square-root information matrices, see `fit_gauge`) adds further nominal points (observed lights).
+    square-root information matrices, see `fit_gauge`) adds further nominal points (observed lights);
+    `scale_prior` = (metres per recovered unit, relative std) a measured scale (`fit_gauge`).
     """
     cams = [c for c in nominal_centres if c in sensor_from_rig]
     if len(cams) < 3:
@@ -270,7 +277,7 @@ def register_rig(
     ex_src, ex_dst, ex_sig = extra_points if extra_points is not None else (None, None, 1.0)
     # recovered rig -> stage rig
     S_rig = fit_gauge(
-        src, dst, src_rot, dst_rot, position_sigma_m, rotation_sigma_deg, ex_src, ex_dst, ex_sig
+        src, dst, src_rot, dst_rot, position_sigma_m, rotation_sigma_deg, ex_src, ex_dst, ex_sig, scale_prior
     )
     rig_rms = float(np.sqrt(((S_rig.apply(src) - dst) ** 2).sum(1).mean()))
     S_rig_inv = S_rig.inverse()

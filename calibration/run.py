@@ -58,9 +58,20 @@ class CalibrateConfig:
     # triangulated, with the nominal position as prior (per-axis sigma); the others keep nominal positions.
     observe_bulbs: bool = True
     light_prior_sigma_mm: float = 3.0  # also the lights' mounting tolerance when they join the gauge
-    bulbs_in_gauge: bool = True  # observed lights join the camera centres/orientations in the gauge fit
+    lights_in_gauge: bool = True  # observed lights join the camera centres/orientations in the gauge fit
     bulb_pixel_sigma: float = 0.1  # disc-centre + camera-direction uncertainty, processed pixels
-    bulb_gauge_max_sigma: float = 4.0  # a light further off its nominal position (in sigmas) leaves the gauge
+    # a light further off its nominal position (in sigmas) leaves the gauge
+    light_gauge_max_sigma: float = 4.0
+    # A mirror-ball probe capture (capture/probe.py), when the capture has one, locates every light it mirrors.
+    use_probe: bool = True
+    # highlight and outline-centre uncertainty, raw pixels (5x what the simulator's frames give: real optics)
+    probe_pixel_sigma: float = 0.01
+    # camera rotation uncertainty after SfM (its shape error; not magnified by the mirror)
+    probe_rotation_sigma_deg: float = 0.01
+    probe_distance_sigma_mm: float = 0.2  # camera-to-ball distance uncertainty (cameras' relative positions)
+    probe_refine_distances: bool = True  # fit each view's camera-to-ball distance together with the lights
+    probe_scale: bool = True  # the ball's known radius fixes the rig's metric scale in the gauge
+    probe_radius_sigma_mm: float = 0.005  # tolerance of the ball's radius
     peak_threshold: float = 0.004
     ransac_max_error_px: float = 2.0
     num_threads: int = 2
@@ -103,12 +114,17 @@ class CalibrateConfig:
             cfg.gauge_position_sigma_mm <= 0
             or cfg.light_prior_sigma_mm <= 0
             or cfg.bulb_pixel_sigma <= 0
-            or cfg.bulb_gauge_max_sigma <= 0
+            or cfg.light_gauge_max_sigma <= 0
+            or cfg.probe_pixel_sigma <= 0
+            or cfg.probe_rotation_sigma_deg < 0
+            or cfg.probe_distance_sigma_mm < 0
+            or cfg.probe_radius_sigma_mm < 0
             or cfg.gauge_rotation_sigma_deg < 0
         ):
             raise LightstageError(
-                "calibration config: gauge_position_sigma_mm, light_prior_sigma_mm, bulb_pixel_sigma and "
-                "bulb_gauge_max_sigma must be > 0, "
+                "calibration config: gauge_position_sigma_mm, light_prior_sigma_mm, bulb_pixel_sigma, "
+                "light_gauge_max_sigma and probe_pixel_sigma must be > 0; probe_rotation_sigma_deg, "
+                "probe_distance_sigma_mm, probe_radius_sigma_mm and "
                 "gauge_rotation_sigma_deg >= 0"
             )
         if not 0.0 < cfg.min_registered_fraction <= 1.0:
@@ -186,6 +202,18 @@ def gauge_with_lights(
     return reg, [lt for lt, k in zip(lights, keep, strict=True) if k], rejected
 
 
+def _ball_centre_errors(probe_report: dict[str, Any], truth_path: Path) -> dict[str, float]:
+    """Per probe position, the distance (mm) of the fitted ball centre from the true one (rig frame)."""
+    try:
+        truth = json.loads(truth_path.read_text())["positions"]
+        return {
+            pos: round(1000.0 * float(np.linalg.norm(np.subtract(c, truth[pos]["ball_centre_rig"]))), 3)
+            for pos, c in probe_report["ball_centres_rig_m"].items()
+        }
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise LightstageError(f"{truth_path}: unreadable ({e})") from None
+
+
 def _rig_poses(reg) -> dict[str, tuple[np.ndarray, np.ndarray]]:  # noqa: ANN001 - register.Registration
     """Camera id -> (R, t) camera-from-rig of a registration (what the bulb functions take)."""
     return {c: (T.R, T.t) for c, T in reg.cam_from_rig.items()}
@@ -219,6 +247,145 @@ def _preprocess_sfm_images(work: WorkDir, capture: Capture) -> tuple[dict[ViewId
             f"{st.width}x{st.height}; rerun `lightstage preprocess`"
         )
     return views, info
+
+
+def _observe_lights(
+    work: WorkDir,
+    capture: Capture,
+    config: CalibrateConfig,
+    intr: dict,
+    register: Callable[[tuple | None, tuple | None], Any],
+    reg: Any,
+    log: Callable[[str], None],
+) -> tuple[dict[str, Any], dict[str, Any] | None]:
+    """Rig-frame light positions from what observed the lights: bulbs seen directly (`bulbs.py`) and the
+    mirror-ball probe (`probe.py`); with `lights_in_gauge` the observed lights first join the gauge fit.
+    Returns (report with "_result": (registration, rig-frame lights, lights in the gauge), probe report)."""
+    from lightstage.calibration.bulbs import bulb_rays, find_bulbs, processed_intrinsics
+    from lightstage.calibration.light_rays import gauge_points, locate_lights
+    from lightstage.calibration.probe import fit_balls, load_probe, probe_rays
+
+    stage = capture.stage
+    nominal = stage.light_positions_rig()
+    intr_K = {c: K for c, (K, _) in intr.items()}
+    K_proc = processed_intrinsics(stage, intr_K)
+    light_sigma = config.light_prior_sigma_mm / 1000.0
+    found = find_bulbs(work, capture, _rig_poses(reg), nominal, intr_K) if config.observe_bulbs else None
+    probe = load_probe(work, capture) if config.use_probe else None
+
+    def rays_of(reg: Any) -> tuple[list, dict[str, Any] | None]:
+        rays = bulb_rays(found.sightings, _rig_poses(reg), K_proc, config.bulb_pixel_sigma) if found else []
+        if probe is None:
+            return rays, None
+        more, report = probe_rays(
+            probe,
+            _rig_poses(reg),
+            intr,
+            config.probe_pixel_sigma,
+            config.probe_rotation_sigma_deg,
+            config.probe_distance_sigma_mm,
+            nominal_lights=nominal if config.probe_refine_distances else None,
+            light_sigma_mm=config.light_prior_sigma_mm,
+        )
+        if scale_prior is not None:
+            report["gauge_scale_prior"] = {
+                "metres_per_sfm_unit": scale_prior[0],
+                "relative_sigma": scale_prior[1],
+            }
+        return rays + more, report
+
+    scale_prior = None
+    if probe is not None and config.probe_scale:
+        # The ball's known radius measures the rig's metric scale far better than the drawings' camera
+        # positions can (their tolerance over the rig's size): refit the gauge with it.
+        balls = fit_balls(probe, _rig_poses(reg), intr)
+        if np.isfinite(balls.scale_ratio_sigma) and len(balls.cones) >= 3:
+            rel = float(
+                np.hypot(
+                    balls.scale_ratio_sigma / balls.scale_ratio,
+                    config.probe_radius_sigma_mm / 1e3 / probe.radius_m,
+                )
+            )
+            scale_prior = (reg.rig_similarity.scale * balls.scale_ratio, max(rel, 1e-7))
+            reg = register(None, scale_prior)
+            log(
+                f"probe: the ball's radius puts the rig's scale {1e3 * (balls.scale_ratio - 1):+.3f} per mille off "
+                f"the drawings' fit (+- {1e3 * rel:.3f})"
+            )
+
+    def register_lights(extra_points: tuple | None) -> Any:
+        return register(extra_points, scale_prior)
+
+    rays, probe_report = rays_of(reg)
+    gauge_lights: list[int] = []
+    gauge_rejected: dict[str, float] = {}
+    if config.lights_in_gauge and rays:
+        # Observed lights are nominal points of the rig too: refit the gauge with them (their points, found in
+        # the first fit's frame, are mapped back to the SfM rig frame the gauge starts from), then redo the rays.
+        gauge_lights, pts, nom, sqrt_info = gauge_points(rays, nominal, mount_sigma_m=light_sigma)
+        reg, gauge_lights, gauge_rejected = gauge_with_lights(
+            register_lights,
+            reg.rig_similarity.inverse().apply(pts),
+            gauge_lights,
+            nom,
+            sqrt_info,
+            config.light_gauge_max_sigma,
+        )
+        rays, probe_report = rays_of(reg)
+    est = locate_lights(rays, nominal, prior_sigma_m=light_sigma)
+    by_bulb = {li for li, src in est.sources.items() if any(s.startswith("bulb") for s in src)}
+    by_probe = {li for li, src in est.sources.items() if any(s.startswith("probe") for s in src)}
+    report: dict[str, Any] = {
+        "num_lights": len(stage.lights),
+        "num_observed": len(est.sources),
+        "num_seen_as_bulbs": len(by_bulb),
+        "num_seen_in_probe": len(by_probe),
+        "num_in_gauge": len(gauge_lights),
+        "gauge_rejected": gauge_rejected,
+        "rays": len(rays),
+        "rays_rejected": sum(est.rejected_rays.values()),
+        "posterior_sigma_mm": {
+            "mean": round(float(np.mean(list(est.sigma_mm.values()))), 3) if est.sigma_mm else None,
+            "max": round(float(np.max(list(est.sigma_mm.values()))), 3) if est.sigma_mm else None,
+        },
+        "observed": {
+            str(i): {
+                "rays": len(src),
+                "cameras_seeing_bulb": sorted(s.split()[1] for s in src if s.startswith("bulb")),
+                "shift_from_nominal_mm": round(est.shift_mm[i], 3),
+                "sigma_mm": round(est.sigma_mm[i], 3),
+            }
+            for i, src in est.sources.items()
+        },
+    }
+    if found is not None:
+        report["bulbs"] = {
+            "candidate_light_cameras": found.candidates,
+            "frames_read": found.frames_read,
+            "unconfirmed_light_cameras": found.unconfirmed,
+            "read_errors": found.read_errors[:20],
+            "sightings": [
+                {
+                    "light": s.light,
+                    "camera": s.camera,
+                    "uv_processed": [round(s.uv[0], 3), round(s.uv[1], 3)],
+                    "groups": s.groups,
+                    "touching_mask": s.touching_mask,
+                }
+                for s in found.sightings
+            ],
+        }
+        if found.read_errors:
+            report["warnings"] = [
+                f"bulbs: {len(found.read_errors)} processed frames unreadable (first: {found.read_errors[0]})"
+            ]
+    log(
+        f"lights: {len(est.sources)}/{len(stage.lights)} observed ({len(by_bulb)} as bulbs, {len(by_probe)} "
+        f"in the mirror-ball probe; {len(gauge_lights)} used in the gauge); "
+        + ("the others at nominal rig positions" if len(est.sources) < len(stage.lights) else "")
+    )
+    report["_result"] = (reg, est.positions, gauge_lights)
+    return report, probe_report
 
 
 def _sfm_calibration(
@@ -279,8 +446,8 @@ def _sfm_calibration(
         )
     nominal_centres = {c.id: camera_center(c.R, c.t) for c in stage.cameras}
 
-    def register(extra_points: tuple | None = None) -> Registration:
-        """The gauge fit and turntable registration, optionally with extra nominal points."""
+    def register(extra_points: tuple | None = None, scale_prior: tuple | None = None) -> Registration:
+        """The gauge fit and turntable registration, optionally with extra nominal points and a measured scale."""
         return register_rig(
             result.sensor_from_rig,
             result.rig_from_world,
@@ -292,6 +459,7 @@ def _sfm_calibration(
             position_sigma_m=config.gauge_position_sigma_mm / 1000.0,
             rotation_sigma_deg=config.gauge_rotation_sigma_deg,
             extra_points=extra_points,
+            scale_prior=scale_prior,
         )
 
     reg = register()
@@ -301,82 +469,11 @@ def _sfm_calibration(
             f"{reg.rig_fit_rms_m * 1000:.1f} mm > {config.max_rig_fit_rms_mm} mm"
         )
     p_rig = stage.light_positions_rig()
-    gauge_lights: list[int] = []
-    gauge_rejected: dict[str, float] = {}
-    if config.observe_bulbs:
-        from lightstage.calibration.bulbs import (
-            find_bulbs,
-            gauge_points,
-            locate_lights,
-            processed_intrinsics,
-        )
-
-        intr_K = {c: K for c, (K, _) in intr.items()}
-        found = find_bulbs(work, capture, _rig_poses(reg), p_rig, intr_K)
-        K_proc = processed_intrinsics(stage, intr_K)
-        light_sigma = config.light_prior_sigma_mm / 1000.0
-        if config.bulbs_in_gauge and found.sightings:
-            # Observed lights are nominal points of the rig too: refit the gauge with them (their rays, found in
-            # the first fit's frame, are mapped back to the SfM rig frame the gauge starts from).
-            gauge_lights, pts, nom, sqrt_info = gauge_points(
-                found.sightings,
-                _rig_poses(reg),
-                p_rig,
-                K_proc,
-                mount_sigma_m=light_sigma,
-                pixel_sigma=config.bulb_pixel_sigma,
-            )
-            reg, gauge_lights, gauge_rejected = gauge_with_lights(
-                register,
-                reg.rig_similarity.inverse().apply(pts),
-                gauge_lights,
-                nom,
-                sqrt_info,
-                config.bulb_gauge_max_sigma,
-            )
-        bulbs = locate_lights(
-            found.sightings,
-            _rig_poses(reg),
-            p_rig,
-            K_proc,
-            prior_sigma_m=light_sigma,
-            pixel_sigma=config.bulb_pixel_sigma,
-        )
-        p_rig = bulbs.positions
-        stats["lights"] = {
-            "num_lights": len(stage.lights),
-            "num_observed": len(bulbs.cameras_per_light),
-            "num_triangulated": sum(len(c) >= 2 for c in bulbs.cameras_per_light.values()),
-            "num_in_gauge": len(gauge_lights),
-            "gauge_rejected": gauge_rejected,
-            "candidate_light_cameras": found.candidates,
-            "frames_read": found.frames_read,
-            "unconfirmed_light_cameras": found.unconfirmed,
-            "read_errors": found.read_errors[:20],
-            "observed": {
-                str(i): {"cameras": cams, "shift_from_nominal_mm": round(bulbs.shift_mm[i], 3)}
-                for i, cams in bulbs.cameras_per_light.items()
-            },
-            "sightings": [
-                {
-                    "light": s.light,
-                    "camera": s.camera,
-                    "uv_processed": [round(s.uv[0], 3), round(s.uv[1], 3)],
-                    "groups": s.groups,
-                    "touching_mask": s.touching_mask,
-                }
-                for s in found.sightings
-            ],
-        }
-        if found.read_errors:
-            stats.setdefault("warnings", []).append(
-                f"bulbs: {len(found.read_errors)} processed frames unreadable (first: {found.read_errors[0]})"
-            )
-        log(
-            f"lights: {len(bulbs.cameras_per_light)}/{len(stage.lights)} seen directly by a camera "
-            f"({stats['lights']['num_triangulated']} by two or more, {len(gauge_lights)} used in the gauge); "
-            "the others at nominal rig positions"
-        )
+    lights_report, probe_report = _observe_lights(work, capture, config, intr, register, reg, log)
+    reg, p_rig, gauge_lights = lights_report.pop("_result")
+    stats["lights"] = lights_report
+    if probe_report is not None:
+        stats["probe"] = probe_report
     calib_views = {}
     for v in result.registered:
         R, t = reg.camera_pose(v.group, v.camera)
@@ -402,7 +499,7 @@ def _sfm_calibration(
         f"{stage.group_names[0]} (similarity fitting the recovered rig camera centres and orientations to the "
         f"nominal ones, sigma {config.gauge_position_sigma_mm} mm / {config.gauge_rotation_sigma_deg} deg"
         + (
-            f", and {len(gauge_lights)} bulb-observed lights to theirs, sigma {config.light_prior_sigma_mm} mm"
+            f", and {len(gauge_lights)} observed lights to theirs, sigma {config.light_prior_sigma_mm} mm"
             if gauge_lights
             else ""
         )
@@ -481,6 +578,11 @@ def run_calibrate(
 
             truth = Calibration.load(gt)
             report["ground_truth"] = compare_to_truth(calib, truth, _light_floor(capture, truth))
+            probe_truth = capture.root / "ground_truth" / "probe.json"
+            if "probe" in stats and probe_truth.is_file():
+                report["ground_truth"]["probe_ball_centre_error_mm"] = _ball_centre_errors(
+                    stats["probe"], probe_truth
+                )
     except LightstageError as e:
         report.update(status="failed", error=str(e), seconds=round(time.perf_counter() - t0, 2))
         write_json_atomic(report_path, report)

@@ -8,6 +8,7 @@ stage; only with --groups/--cameras/--lights subsets, for benchmarks). Determini
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import time
@@ -30,7 +31,16 @@ from lightstage.capture.layout import (
     save_capture_info,
 )
 from lightstage.capture.presets import PAPER_RESOLUTION, make_stage
-from lightstage.capture.sim_render import ViewJob, ViewRecord, render_view, run_view_job
+from lightstage.capture.probe import save_probe_info
+from lightstage.capture.sim_probe import (
+    PROBE_GROUND_TRUTH,
+    ProbeSettings,
+    probe_ground_truth,
+    probe_jobs,
+    render_probe_view,
+    run_probe_job,
+)
+from lightstage.capture.sim_render import ViewJob, render_view, run_view_job
 from lightstage.capture.sim_scene import SimScene, cast_view, default_scene, render_hits
 from lightstage.capture.stage import LightSpec, Stage
 from lightstage.errors import LightstageError
@@ -182,8 +192,12 @@ def simulate_capture(
     lights: Any = None,
     workers: int | None = None,
     progress: bool = True,
+    probe: bool = True,
 ) -> Path:
-    """Simulate a raw capture with ground truth into `out` (created; must be empty or absent); returns `out`."""
+    """Simulate a raw capture with ground truth into `out` (created; must be empty or absent); returns `out`.
+
+    `probe`: also write the mirror-ball light-probe frames (probe/, see capture.probe) and
+    ground_truth/probe.json, after the capture frames."""
     if preset not in SIM_PRESETS:
         raise LightstageError(f"unknown simulator preset {preset!r} (known: {', '.join(SIM_PRESETS)})")
     if not isinstance(seed, int) or seed < 0:
@@ -252,7 +266,10 @@ def simulate_capture(
         for gi in gsel
         for ci in csel
     ]
-    records = _run_jobs(jobs, workers, progress)
+    with _process_pool(_pool_size(workers, len(jobs))) as pool:
+        records = _run_jobs(jobs, pool, progress)
+        if probe:  # the probe's views reuse the pool (spawning workers costs ~1 s)
+            _simulate_probe(out, stage, truth, scene, seed, preset, full, lsel, pool, progress)
     nuisances = {
         "bulbs_in_view": [
             {"group": r.group, "camera": r.camera, "light": lt, "pixels": n}
@@ -273,27 +290,90 @@ def simulate_capture(
     return out
 
 
-def _run_jobs(jobs: list[ViewJob], workers: int | None, progress: bool) -> list[ViewRecord]:
-    """Render views serially or in a process pool; results in job order."""
+def _simulate_probe(
+    out: Path,
+    stage: Stage,
+    truth: TrueGeometry,
+    scene: SimScene,
+    seed: int,
+    preset: str,
+    full: Stage,
+    lsel: list[int],
+    pool: ProcessPoolExecutor | None,
+    progress: bool,
+    settings: ProbeSettings | None = None,
+) -> None:
+    """The mirror-ball probe: probe/probe.yaml, its frames, ground_truth/probe.json."""
+    start = time.perf_counter()
+    settings = settings or ProbeSettings()
+    info, jobs = probe_jobs(
+        out,
+        stage,
+        truth,
+        scene,
+        seed,
+        {g.name: i for i, g in enumerate(full.groups)},
+        {c.id: i for i, c in enumerate(full.cameras)},
+        tuple(lsel),
+        settings,
+        attributes={"lightstage_simulator": f"{preset} seed {seed} probe"},
+    )
+    records = _run_jobs(jobs, pool, progress, render_probe_view, run_probe_job, "simulate probe")
+    save_probe_info(info, out)
+    write_json_atomic(
+        out / PROBE_GROUND_TRUTH, probe_ground_truth(truth, settings, list(info.positions), records)
+    )
+    if progress:
+        n = len(jobs) * (len(lsel) + 1)
+        print(
+            f"simulated {n} probe frames ({len(info.positions)} positions x {len(stage.cameras)} cameras, "
+            f"{len(lsel)} lights + ambient) in {time.perf_counter() - start:.1f} s"
+        )
+
+
+def _pool_size(workers: int | None, num_jobs: int) -> int:
+    """Worker processes for `num_jobs` views: `workers` (default: available cores, at most 8); 1 inside a
+    daemon process (e.g. a dask worker), which may not have children."""
     import multiprocessing as mp
 
+    n = workers if workers is not None else min(len(os.sched_getaffinity(0)), 8)
+    n = max(1, min(n, num_jobs))
+    if mp.current_process().daemon:
+        n = 1
+    return n
+
+
+def _process_pool(n: int) -> contextlib.AbstractContextManager[ProcessPoolExecutor | None]:
+    """A spawn process pool of `n` workers, or None (serial) for n = 1; shared by the capture and the probe."""
+    import multiprocessing as mp
+
+    if n <= 1:
+        return contextlib.nullcontext(None)
+    return ProcessPoolExecutor(n, mp_context=mp.get_context("spawn"))
+
+
+def _run_jobs(
+    jobs: list[Any],
+    pool: ProcessPoolExecutor | None,
+    progress: bool,
+    render: Any = render_view,
+    entry: Any = run_view_job,
+    desc: str = "simulate views",
+) -> list[Any]:
+    """Render views serially (`render`, pool None) or in `pool` (`entry`: sets library threads); results in
+    job order."""
     from tqdm import tqdm
 
-    n = workers if workers is not None else min(len(os.sched_getaffinity(0)), 8)
-    n = max(1, min(n, len(jobs)))
-    if mp.current_process().daemon:  # e.g. inside a dask worker: no child processes allowed
-        n = 1
-    bar = tqdm(total=len(jobs), desc="simulate views", unit="view", disable=not progress)
-    records: list[ViewRecord] = []
-    if n == 1:
+    bar = tqdm(total=len(jobs), desc=desc, unit="view", disable=not progress)
+    records: list[Any] = []
+    if pool is None:
         for job in jobs:
-            records.append(render_view(job))
+            records.append(render(job))
             bar.update()
     else:
-        with ProcessPoolExecutor(n, mp_context=mp.get_context("spawn")) as pool:
-            for rec in pool.map(run_view_job, jobs, chunksize=1):
-                records.append(rec)
-                bar.update()
+        for rec in pool.map(entry, jobs, chunksize=1):
+            records.append(rec)
+            bar.update()
     bar.close()
     return records
 

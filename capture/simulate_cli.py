@@ -12,7 +12,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "simulate",
         help="write a simulated raw capture with ground truth (demo data, test fixtures)",
         description="Simulate a light-stage OLAT capture of a translucent object: stage.yaml (nominal), "
-        "capture.yaml, half EXR frames, ground_truth/ and contact_sheet.png.",
+        "capture.yaml, half EXR frames, a mirror-ball light probe (probe/), ground_truth/ and contact_sheet.png.",
     )
     p.add_argument("out", type=Path, help="output capture directory (must be absent or empty)")
     p.add_argument("--preset", default="tiny", help="tiny | small | paper (paper needs all three selectors)")
@@ -21,6 +21,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--cameras", help="camera ids or indices, e.g. cam00,cam03 or 0-4")
     p.add_argument("--lights", help="light indices, e.g. 0,10,20-25 or 0-31:2 (every other)")
     p.add_argument("--workers", type=int, help="worker processes (default: available cores)")
+    p.add_argument("--no-probe", action="store_true", help="skip the mirror-ball light-probe frames (probe/)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_simulate)
 
@@ -40,5 +41,6 @@ def _simulate(args: argparse.Namespace) -> int:
         lights=args.lights,
         workers=args.workers,
         progress=not args.quiet,
+        probe=not args.no_probe,
     )
     return 0

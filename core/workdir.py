@@ -7,6 +7,7 @@ WORK/
   reports/<stage>.json                # per-stage record: config hash, inputs, counts, timings, errors
   preprocess/frames/<g>/<c>/<l>.exr   # 4x downscaled linear HDR, channels R G B + S (1 = saturated)
   preprocess/views/<g>/<c>/...        # mean.exr, stats.npz, wellit.png, mask.png, zones.png, overlay.png
+  preprocess/probe/<pos>/<c>.json     # mirror-ball probe: ball outline + highlight per light (raw pixels)
   calibration/calibration.json        # per-view K, dist, R, t; per-(group, light) world positions; axis, yaws
   calibration/colmap/, transforms.json, layout.png
   split.json                          # train/test frames as data
@@ -88,6 +89,14 @@ class WorkDir:
     def sfm_mask(self, view: ViewId) -> Path:
         """The view's mask at the SfM image's resolution (SfM features only on the object)."""
         return self.view_dir(view) / "sfm_mask.png"
+
+    @property
+    def probe_dir(self) -> Path:
+        """Per-view measurements of the capture's mirror-ball probe (preprocess/probe.py)."""
+        return self.preprocess_dir / "probe"
+
+    def probe_view(self, position: str, camera: str) -> Path:
+        return self.probe_dir / position / f"{camera}.json"
 
     @property
     def sfm_info(self) -> Path:

@@ -543,10 +543,17 @@ def run_preprocess(
     report = build_report(
         work, capture, config, view_jobs, records, chunk_results, errors, finished_before, exposure
     )
+    t_previews = time.perf_counter() - t_prev
+    from lightstage.preprocess.probe import run_probe
+
+    probe = run_probe(work, capture, client, progress)
+    if probe is not None:
+        report["probe"] = probe
     report["timings"] = {
         "total_s": round(time.perf_counter() - t0, 3),
         "frames_and_views_s": round(t_views, 3),
-        "previews_s": round(time.perf_counter() - t_prev, 3),
+        "previews_s": round(t_previews, 3),
+        "probe_s": probe["seconds"] if probe is not None else None,
         "per_processed_frame_s": round(t_views / max(report["counts"]["processed"], 1), 4)
         if report["counts"]["processed"]
         else None,

@@ -13,12 +13,12 @@ import pytest
 from lightstage.calibration.bulbs import (
     BulbDisc,
     BulbSighting,
+    bulb_rays,
     combine_discs,
     detect_bulb,
     find_bulbs,
-    gauge_points,
-    locate_lights,
 )
+from lightstage.calibration.light_rays import LightRay, gauge_points, locate_lights, ray_misfit
 from lightstage.calibration.record import Calibration
 from lightstage.cameras import look_at
 from lightstage.capture.layout import ViewId, open_capture
@@ -141,7 +141,7 @@ def test_locate_lights_triangulates_and_moves_single_sightings_onto_their_ray():
     true = nominal + np.array([[0.004, -0.003, 0.002], [-0.002, 0.003, 0.004], [0.0, 0.0, 0.0]])
     sightings = [_sight(0, c, true[0], cams, Ks) for c in ("cam00", "cam01", "cam05")]
     sightings.append(_sight(1, "cam00", true[1], cams, Ks))
-    est = locate_lights(sightings, cams, nominal, Ks, prior_sigma_m=0.003, pixel_sigma=0.01)
+    est = locate_lights(bulb_rays(sightings, cams, Ks, pixel_sigma=0.01), nominal, prior_sigma_m=0.003)
     assert np.linalg.norm(est.positions[0] - true[0]) < 1e-4  # triangulated
     # One camera: the light lands on its ray (2 of 3 coordinates observed).
     R, t = cams["cam00"]
@@ -150,8 +150,23 @@ def test_locate_lights_triangulates_and_moves_single_sightings_onto_their_ray():
     off = est.positions[1] - c
     assert np.linalg.norm(off - (off @ d) * d) < 1e-4
     np.testing.assert_array_equal(est.positions[2], nominal[2])  # never seen: nominal
-    assert sorted(est.cameras_per_light) == [0, 1] and est.cameras_per_light[0] == ["cam00", "cam01", "cam05"]
+    assert sorted(est.sources) == [0, 1] and est.sources[0] == ["bulb cam00", "bulb cam01", "bulb cam05"]
     assert est.shift_mm[0] == pytest.approx(1000 * np.linalg.norm(est.positions[0] - nominal[0]))
+
+
+def test_locate_lights_drops_a_ray_that_misses_the_others():
+    nominal = np.array([[1.5, 0.0, 0.0]])
+    true = nominal[0] + [0.002, -0.001, 0.003]
+    rays = []
+    for i, o in enumerate(np.array([[0, 0, 0], [0, 0.3, 0], [0, 0, 0.3], [0, -0.2, 0.1]], float)):
+        d = (true - o) / np.linalg.norm(true - o)
+        rays.append(LightRay(0, o, d, 1e-5, f"r{i}"))
+    bad_d = (true + [0, 0.03, 0] - rays[0].origin) / np.linalg.norm(true + [0, 0.03, 0])
+    rays.append(LightRay(0, np.zeros(3), bad_d, 1e-5, "wrong blob"))
+    est = locate_lights(rays, nominal, prior_sigma_m=0.003)
+    assert est.rejected_rays == {0: 1} and "wrong blob" not in est.sources[0]
+    assert np.linalg.norm(est.positions[0] - true) < 1e-5
+    assert ray_misfit(rays[1], true) < 1e-6 and est.sigma_mm[0] < 0.1
 
 
 def test_gauge_points_weights_follow_the_rays():
@@ -160,7 +175,8 @@ def test_gauge_points_weights_follow_the_rays():
     true = nominal + 0.002
     sightings = [_sight(0, c, true[0], cams, Ks) for c in ("cam00", "cam01", "cam05")]
     sightings.append(_sight(1, "cam00", true[1], cams, Ks))
-    lights, pts, nom, L = gauge_points(sightings, cams, nominal, Ks, mount_sigma_m=0.003, pixel_sigma=0.01)
+    rays = bulb_rays(sightings, cams, Ks, pixel_sigma=0.01)
+    lights, pts, nom, L = gauge_points(rays, nominal, mount_sigma_m=0.003)
     assert lights == [0, 1]
     np.testing.assert_allclose(pts[0], true[0], atol=1e-4)
     np.testing.assert_array_equal(nom, nominal)
@@ -171,7 +187,7 @@ def test_gauge_points_weights_follow_the_rays():
     d /= np.linalg.norm(d)
     assert np.linalg.norm(L[1] @ d) < 1e-3 * np.linalg.norm(L[1])
     assert np.linalg.svd(L[1], compute_uv=False)[:2] == pytest.approx([1 / 0.003] * 2, rel=0.01)
-    assert gauge_points([], cams, nominal, Ks)[1].shape == (0, 3)
+    assert gauge_points([], nominal)[1].shape == (0, 3)
 
 
 @pytest.fixture(scope="module")

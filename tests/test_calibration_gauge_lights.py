@@ -48,3 +48,22 @@ def test_gauge_with_lights_drops_a_light_far_off_nominal():
         register, S.apply(nominal), [1, 2, 3, 4, 5], nominal, sqrt_info, 4.0
     )
     assert used == [1, 2, 3, 4, 5] and rejected == {}
+
+
+def test_a_measured_scale_overrules_the_drawings_scale():
+    """Camera centres off their drawn positions leave the gauge's scale off by their tolerance over the rig's
+    size; a scale measured by a known length (the probe ball) with a small std wins, a vague one does not."""
+    from lightstage.calibration.register import fit_gauge
+
+    stage = make_stage("t", num_cameras=20, num_lights=4, width=512, height=340, camera_distance=1.1)
+    rng = np.random.default_rng(5)
+    nominal = np.stack([camera_center(c.R, c.t) for c in stage.cameras])
+    true = nominal + 0.003 * rng.normal(size=nominal.shape)
+    S = Similarity(0.6, Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3))
+    src = S.apply(true)  # SfM sees the true rig
+    free = fit_gauge(src, nominal)
+    assert abs(free.scale * S.scale - 1) > 1e-4  # the drawings alone: scale off by ~1e-3
+    measured = fit_gauge(src, nominal, scale_prior=(1 / S.scale, 1e-6))
+    assert measured.scale * S.scale == pytest.approx(1, abs=3e-6)
+    vague = fit_gauge(src, nominal, scale_prior=(1 / S.scale, 1.0))
+    assert vague.scale == pytest.approx(free.scale, rel=1e-5)
