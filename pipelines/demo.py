@@ -233,6 +233,39 @@ def _metrics_table(ev: dict[str, Any]) -> list[str]:
     return lines if found else ["(no metrics found in reports/eval.json)"]
 
 
+def _calibration_table(cal: dict[str, Any]) -> list[str]:
+    """Calibration errors against the simulator's ground truth, and what observed the lights."""
+    gt, sfm = cal.get("ground_truth"), cal.get("sfm", {})
+    if not isinstance(gt, dict) or "raw" not in gt:
+        return []
+    raw = gt["raw"]
+    rows = [
+        ("camera rotation (deg)", raw.get("rotation_error_deg", {})),
+        ("camera centre (mm)", raw.get("camera_centre_error_mm", {})),
+        ("light position (mm)", raw.get("light_position_error_mm", {})),
+        ("group yaw (deg)", {k: abs(v) for k, v in gt.get("yaw_error_deg", {}).items() if k != "per_group"}),
+    ]
+    lines = [
+        "",
+        "Calibration against the simulator's ground truth:",
+        "",
+        "| error | mean | max |",
+        "|---|---|---|",
+    ]
+    for name, block in rows:
+        if isinstance(block, dict) and "mean" in block and "max" in block:
+            lines.append(f"| {name} | {block['mean']:.3g} | {block['max']:.3g} |")
+    lights = sfm.get("lights", {})
+    if lights:
+        lines += [
+            "",
+            f"Lights observed: {lights.get('num_observed', 0)} of {lights.get('num_lights', '?')} "
+            f"({lights.get('num_seen_as_bulbs', 0)} as bulbs in view, {lights.get('num_seen_in_probe', 0)} in the "
+            "mirror-ball probe); the others keep their nominal rig positions.",
+        ]
+    return lines
+
+
 def write_report(
     work: WorkDir, timings: dict[str, float], relit: dict[str, Any], seconds: float, preset: str
 ) -> Path:
@@ -276,6 +309,7 @@ def write_report(
         lines.append("![camera layout](report/layout.png)")
     else:
         lines.append("(calibration wrote no layout.png)")
+    lines += _calibration_table(_load_json(work.report("calibration")))
 
     preds = sorted(p for p in work.eval_dir.rglob("*.png"))[:MAX_PREDICTIONS_SHOWN]
     lines += ["", "## Test predictions (prediction | ground truth | error)", ""]

@@ -42,8 +42,25 @@ def test_report_collects_pictures_and_metrics(tmp_path: Path) -> None:
     work.report("eval").write_text(
         json.dumps({"mean": {"psnr": 27.5, "ssim": 0.91}, "baseline": {"psnr": 15.0}})
     )
+    work.report("calibration").write_text(
+        json.dumps(
+            {
+                "ground_truth": {
+                    "raw": {
+                        "rotation_error_deg": {"mean": 0.027, "max": 0.041},
+                        "camera_centre_error_mm": {"mean": 0.84, "max": 1.24},
+                        "light_position_error_mm": {"mean": 1.24, "max": 3.03},
+                    },
+                    "yaw_error_deg": {"mean": 0.003, "max": -0.007, "per_group": {}},
+                },
+                "sfm": {"lights": {"num_observed": 16, "num_lights": 16, "num_seen_in_probe": 16}},
+            }
+        )
+    )
     path = write_report(work, {"eval": 1.0}, {"envmap": "sky.exr", "tonemap": "srgb"}, 60.0, "tiny (seed 0)")
     text = path.read_text()
+    assert "| light position (mm) | 1.24 | 3.03 |" in text and "| group yaw (deg) | 0.003 | 0.007 |" in text
+    assert "Lights observed: 16 of 16 (0 as bulbs in view, 16 in the mirror-ball probe)" in text
     for pic in ("masks.png", "layout.png", "predictions.png", "relit_000_cam00_k016.png"):
         assert f"report/{pic}" in text
         assert (work.root / "report" / pic).is_file()
