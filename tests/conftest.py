@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import os
 import signal
 import threading
@@ -58,3 +59,18 @@ class ProcessKiller:
 def kill_process_when() -> type[ProcessKiller]:
     """`with kill_process_when(pid, ready): run(...)` kills `pid` mid-run (see ProcessKiller)."""
     return ProcessKiller
+
+
+@pytest.fixture
+def tree_hash() -> Callable[[Path], str]:
+    """sha256 over every file's relative path and bytes under a directory (same bytes <=> same hash)."""
+
+    def digest(root: Path) -> str:
+        h = hashlib.sha256()
+        for p in sorted(root.rglob("*")):
+            if p.is_file():
+                h.update(str(p.relative_to(root)).encode())
+                h.update(p.read_bytes())
+        return h.hexdigest()
+
+    return digest

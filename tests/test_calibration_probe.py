@@ -68,9 +68,7 @@ def _scene():
     d = rng.normal(size=(6, 3))
     d[:, 2] = np.abs(d[:, 2])
     lights = 1.5 * d / np.linalg.norm(d, axis=1, keepdims=True)
-    centres = {
-        g: 0.09 * np.array([np.cos(np.deg2rad(g)), np.sin(np.deg2rad(g)), 0.0]) for g in (0, 120, 240)
-    }
+    centres = {g: 0.09 * np.array([np.cos(np.deg2rad(g)), np.sin(np.deg2rad(g)), 0.0]) for g in (0, 120, 240)}
     return cams, lights, {f"{g:03d}": c for g, c in centres.items()}
 
 

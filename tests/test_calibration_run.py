@@ -284,7 +284,11 @@ def test_sfm_small_registers_every_view_and_exports_match(small_sfm):
     assert any(s["light"] == 4 and s["camera"] == "cam14" for s in lights["bulbs"]["sightings"])
     assert lights["num_seen_in_probe"] == lights["num_observed"] == lights["num_lights"]
     probe = sfm["probe"]
-    assert probe["views"] == 60 and not probe["view_errors"] and probe["rays"] >= 0.95 * 60 * lights["num_lights"]
+    assert (
+        probe["views"] == 60
+        and not probe["view_errors"]
+        and probe["rays"] >= 0.95 * 60 * lights["num_lights"]
+    )
     assert max(gt_err for gt_err in report["ground_truth"]["probe_ball_centre_error_mm"].values()) < 2.0
     # Ground-truth errors are reported (raw and gauge-aligned), and are far from absurd.
     gt = report["ground_truth"]

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
 import subprocess
 import sys
@@ -17,15 +16,6 @@ from lightstage.capture.sim_render import saturation_value
 from lightstage.capture.sim_scene import Ellipsoid
 from lightstage.capture.simulate import SIM_PRESETS, load_scene, load_truth, render_clean, simulate_capture
 from lightstage.errors import LightstageError
-
-
-def _tree_hash(root: Path) -> str:
-    h = hashlib.sha256()
-    for p in sorted(root.rglob("*")):
-        if p.is_file():
-            h.update(str(p.relative_to(root)).encode())
-            h.update(p.read_bytes())
-    return h.hexdigest()
 
 
 def _mask(root: Path, group: str, camera: str) -> np.ndarray:
@@ -91,13 +81,13 @@ def test_nominal_stage_differs_from_truth(tiny_capture: Path) -> None:
         assert 0.0 < np.median(err) < 0.05
 
 
-def test_deterministic_for_a_seed(tmp_path: Path) -> None:
+def test_deterministic_for_a_seed(tmp_path: Path, tree_hash) -> None:
     sel = {"groups": "000,040", "cameras": "0,2", "lights": "0-3"}
     a = simulate_capture(tmp_path / "a", "tiny", seed=3, workers=1, progress=False, **sel)
     b = simulate_capture(tmp_path / "b", "tiny", seed=3, workers=2, progress=False, **sel)
     c = simulate_capture(tmp_path / "c", "tiny", seed=4, workers=1, progress=False, **sel)
-    assert _tree_hash(a) == _tree_hash(b)
-    assert _tree_hash(a) != _tree_hash(c)
+    assert tree_hash(a) == tree_hash(b)
+    assert tree_hash(a) != tree_hash(c)
     cap = open_capture(a)
     assert cap.stage.group_names == ["000", "040"] and cap.stage.camera_ids == ["cam00", "cam02"]
     assert len(cap.stage.lights) == 4

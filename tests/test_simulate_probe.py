@@ -3,7 +3,6 @@ rendered highlights and silhouettes, and the simulator's probe output."""
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 
@@ -221,22 +220,13 @@ def test_ambient_silhouette_is_the_projected_sphere() -> None:
 
 
 # ---- the simulator's output -------------------------------------------------------------------------------------
-def _tree_hash(root: Path) -> str:
-    h = hashlib.sha256()
-    for p in sorted(root.rglob("*")):
-        if p.is_file():
-            h.update(str(p.relative_to(root)).encode())
-            h.update(p.read_bytes())
-    return h.hexdigest()
-
-
-def test_simulated_probe_files_truth_and_determinism(tmp_path: Path) -> None:
+def test_simulated_probe_files_truth_and_determinism(tmp_path: Path, tree_hash) -> None:
     from lightstage.capture.validate import validate_capture
 
     sel = {"groups": "000,120", "cameras": "0,3", "lights": "0-8:4"}
     a = simulate_capture(tmp_path / "a", "tiny", seed=5, workers=1, progress=False, **sel)
     b = simulate_capture(tmp_path / "b", "tiny", seed=5, workers=2, progress=False, **sel)
-    assert _tree_hash(a / "probe") == _tree_hash(b / "probe")
+    assert tree_hash(a / "probe") == tree_hash(b / "probe")
     assert (a / "ground_truth/probe.json").read_bytes() == (b / "ground_truth/probe.json").read_bytes()
 
     cap = open_capture(a)
