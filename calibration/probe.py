@@ -23,6 +23,7 @@ from lightstage.calibration.light_rays import LightRay
 from lightstage.cameras import camera_center, undistort_pixels
 from lightstage.capture.layout import Capture
 from lightstage.errors import LightstageError
+from lightstage.workdir import WorkDir
 
 
 @dataclass(frozen=True)
@@ -55,7 +56,7 @@ class ProbeData:
     view_errors: list[str] = field(default_factory=list)
 
 
-def load_probe(work, capture: Capture) -> ProbeData | None:  # noqa: ANN001 - WorkDir
+def load_probe(work: WorkDir, capture: Capture) -> ProbeData | None:
     """The capture's probe measurements (None when the capture has no probe); a clear error when preprocess
     has not measured them."""
     from lightstage.capture.probe import load_probe_info
@@ -329,6 +330,7 @@ def probe_rays(
     distance_sigma_mm: float = 0.2,
     nominal_lights: np.ndarray | None = None,
     light_sigma_mm: float = 3.0,
+    keep_distance_sigma: bool = False,
 ) -> tuple[list[LightRay], dict]:
     """Every highlight as a ray towards its light in the rig frame of `cam_from_rig`, and a report.
 
@@ -336,8 +338,10 @@ def probe_rays(
     outline's axis, at the triangulated distance times the ball's `scale_ratio`. The normals are sensitive to
     that distance (0.05 mm turns a ray by ~1 mrad on a 5 cm ball), and the cameras' relative positions after SfM
     are only good to `distance_sigma_mm`: with `nominal_lights` given, the distances are refined together with
-    the lights (`refine_distances`) and the rays use them; the effect of what uncertainty remains (or of
-    `distance_sigma_mm` without refinement) joins each ray's angular std with the pixel and rotation stds."""
+    the lights (`refine_distances`) and the rays use them; given those, each light's least-squares point is the
+    joint solution, so the distances' remaining uncertainty is left out of the rays' stds unless
+    `keep_distance_sigma` (for uses that need each ray's full uncertainty, such as the gauge; without refinement
+    it is always in, from `distance_sigma_mm`)."""
     r = data.radius_m
     balls = fit_balls(data, cam_from_rig, intrinsics)
     k = balls.scale_ratio
@@ -357,7 +361,7 @@ def probe_rays(
             distance_sigma_mm / 1000.0,
             light_sigma_mm / 1000.0,
         )
-        D_sigma = np.zeros(len(D))
+        D_sigma = D_post if keep_distance_sigma else np.zeros(len(D))
     origin, direction = _rig_rays(h, D, r, k)
     # The distance's remaining uncertainty, through each ray's sensitivity to it (0.01 mm step).
     _, farther = _rig_rays(h, D + 1e-5, r, k)

@@ -273,7 +273,7 @@ def _observe_lights(
     found = find_bulbs(work, capture, _rig_poses(reg), nominal, intr_K) if config.observe_bulbs else None
     probe = load_probe(work, capture) if config.use_probe else None
 
-    def rays_of(reg: Any) -> tuple[list, dict[str, Any] | None]:
+    def rays_of(reg: Any, for_gauge: bool = False) -> tuple[list, dict[str, Any] | None]:
         rays = bulb_rays(found.sightings, _rig_poses(reg), K_proc, config.bulb_pixel_sigma) if found else []
         if probe is None:
             return rays, None
@@ -286,6 +286,7 @@ def _observe_lights(
             config.probe_distance_sigma_mm,
             nominal_lights=nominal if config.probe_refine_distances else None,
             light_sigma_mm=config.light_prior_sigma_mm,
+            keep_distance_sigma=for_gauge,
         )
         if scale_prior is not None:
             report["gauge_scale_prior"] = {
@@ -316,7 +317,7 @@ def _observe_lights(
     def register_lights(extra_points: tuple | None) -> Any:
         return register(extra_points, scale_prior)
 
-    rays, probe_report = rays_of(reg)
+    rays, probe_report = rays_of(reg, for_gauge=True)
     gauge_lights: list[int] = []
     gauge_rejected: dict[str, float] = {}
     if config.lights_in_gauge and rays:
@@ -331,7 +332,7 @@ def _observe_lights(
             sqrt_info,
             config.light_gauge_max_sigma,
         )
-        rays, probe_report = rays_of(reg)
+    rays, probe_report = rays_of(reg)
     est = locate_lights(rays, nominal, prior_sigma_m=light_sigma)
     by_bulb = {li for li, src in est.sources.items() if any(s.startswith("bulb") for s in src)}
     by_probe = {li for li, src in est.sources.items() if any(s.startswith("probe") for s in src)}

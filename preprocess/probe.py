@@ -14,13 +14,18 @@ import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
 
 from lightstage.atomic import write_json_atomic
 from lightstage.errors import LightstageError
+
+if TYPE_CHECKING:
+    from lightstage.capture.layout import Capture
+    from lightstage.capture.probe import ProbeInfo
+    from lightstage.workdir import WorkDir
 
 MAX_OUTLINE_POINTS = 2048  # outline points kept per view (evenly spaced): plenty for a centre to 0.01 px
 RECORD_VERSION = 1
@@ -226,7 +231,7 @@ def load_view_record(path: Path) -> ProbeViewRecord | None:
         return None
 
 
-def probe_jobs(work: Any, capture: Any, info: Any) -> list[ProbeViewJob]:
+def probe_jobs(work: WorkDir, capture: Capture, info: ProbeInfo) -> list[ProbeViewJob]:
     """One job per (position, camera) of the probe capture `info` (capture.probe.ProbeInfo)."""
     stage = capture.stage
     jobs = []
@@ -250,7 +255,9 @@ def probe_jobs(work: Any, capture: Any, info: Any) -> list[ProbeViewJob]:
     return jobs
 
 
-def run_probe(work: Any, capture: Any, client: Any = None, progress: bool = True) -> dict[str, Any] | None:
+def run_probe(
+    work: WorkDir, capture: Capture, client: Any = None, progress: bool = True
+) -> dict[str, Any] | None:
     """Measure every view of the capture's probe (None when it has none); resumes finished views. Returns a
     summary for the preprocess report."""
     from tqdm import tqdm

@@ -231,19 +231,19 @@ def test_colmap_image_names_are_rig_folders():
 
 
 # ---- SfM on the simulator's `small` capture (slow) -------------------------------------------------------------
-# Subset: all 9 groups x 20 cameras at the preset's raw resolution, but 6 evenly spread lights (simulating all of
-# them takes ~6x longer; preprocess builds the SfM images from the simulated lights).
-SMALL_NUM_LIGHTS = 6
+# The demo's capture: all 9 groups x 20 cameras at the preset's raw resolution, every other light (16 of 32:
+# simulating all of them takes twice as long; the SfM's cost does not depend on the light count). With its
+# mirror-ball probe. (A 6-light subset is cheaper but puts only 6 lights into the gauge: its camera-centre max
+# was 2.93 mm, docs/calibration.md.)
+SMALL_LIGHTS = "0-31:2"
 
 
 @pytest.fixture(scope="module")
 def small_sfm(tmp_path_factory: pytest.TempPathFactory) -> tuple[WorkDir, dict, Path]:
-    from lightstage.capture.simulate import SIM_PRESETS, simulate_capture
+    from lightstage.capture.simulate import simulate_capture
 
     root = tmp_path_factory.mktemp("small")
-    n = SIM_PRESETS["small"].num_lights
-    lights = sorted({int(round(x)) for x in np.linspace(0, n - 1, SMALL_NUM_LIGHTS)})
-    cap = simulate_capture(root / "capture", preset="small", seed=0, lights=lights, progress=False)
+    cap = simulate_capture(root / "capture", preset="small", seed=0, lights=SMALL_LIGHTS, progress=False)
     work = WorkDir.at(root / "work")
     real_preprocess(cap, work)
     # One pycolmap thread: COLMAP's multi-threaded matching and RANSAC are not deterministic, one thread is, so
@@ -255,7 +255,7 @@ def small_sfm(tmp_path_factory: pytest.TempPathFactory) -> tuple[WorkDir, dict, 
 @pytest.mark.slow
 @pytest.mark.timeout(
     1800
-)  # simulate + preprocess + SfM: ~9 min on one shared core (2026-11-23); the fixture runs in this test
+)  # simulate + preprocess + SfM: ~7 min on the 2-core VM (2026-11-24); the fixture runs in this test
 def test_sfm_small_registers_every_view_and_exports_match(small_sfm):
     import pycolmap
 
@@ -277,11 +277,12 @@ def test_sfm_small_registers_every_view_and_exports_match(small_sfm):
         T = image.cam_from_world()
         np.testing.assert_allclose(T.rotation.matrix(), vc.R, atol=1e-9)
         np.testing.assert_allclose(np.asarray(T.translation), vc.t, atol=1e-9)
-    # The one bulb in view on this subset (light 4 = light 25 of the full capture, seen by cam14; the preprocess
-    # mask swallows it and its glow) is observed; the mirror-ball probe sees every light; all join the gauge.
+    # Bulbs in view on this capture: lights 7, 11 and 15 (14, 22, 30 of the full one), seen by 7 cameras in all;
+    # the mirror-ball probe sees every light; all join the gauge.
     lights = sfm["lights"]
     assert lights["num_seen_as_bulbs"] >= 1 and lights["num_in_gauge"] == lights["num_lights"]
-    assert any(s["light"] == 4 and s["camera"] == "cam14" for s in lights["bulbs"]["sightings"])
+    seen = {(s["light"], s["camera"]) for s in lights["bulbs"]["sightings"]}
+    assert {(7, "cam00"), (11, "cam07"), (15, "cam12")} <= seen
     assert lights["num_seen_in_probe"] == lights["num_observed"] == lights["num_lights"]
     probe = sfm["probe"]
     assert (
@@ -305,7 +306,7 @@ def test_sfm_small_meets_rotation_and_yaw_targets(small_sfm):
     gt = json.loads(work.report("calibration").read_text())["ground_truth"]
     assert gt["raw"]["rotation_error_deg"]["max"] <= 0.1
     assert gt["yaw_error_deg"]["max"] <= 0.05
-    assert gt["aligned"]["rotation_error_deg"]["max"] <= 0.08  # 0.036 measured; 0.13-0.17 when it went wrong
+    assert gt["aligned"]["rotation_error_deg"]["max"] <= 0.08  # 0.022 measured; 0.13-0.17 when it went wrong
 
 
 @pytest.mark.slow
@@ -315,8 +316,8 @@ def test_sfm_small_meets_centre_and_light_targets(small_sfm):
     metric scale (the ball's radius) and observes every light (docs/calibration.md)."""
     work, _, _ = small_sfm
     gt = json.loads(work.report("calibration").read_text())["ground_truth"]
-    assert gt["raw"]["camera_centre_error_mm"]["max"] <= 2.0
-    assert gt["raw"]["light_position_error_mm"]["max"] <= 5.0
+    assert gt["raw"]["camera_centre_error_mm"]["max"] <= 2.0  # 1.19 measured (2.46 without the probe)
+    assert gt["raw"]["light_position_error_mm"]["max"] <= 5.0  # 2.84 measured (8.6 without the probe)
 
 
 def test_sfm_without_preprocess_sfm_images_names_them(tiny_capture: Path, tmp_path: Path):
