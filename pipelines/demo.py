@@ -261,7 +261,12 @@ def _calibration_table(cal: dict[str, Any]) -> list[str]:
             "",
             f"Lights observed: {lights.get('num_observed', 0)} of {lights.get('num_lights', '?')} "
             f"({lights.get('num_seen_as_bulbs', 0)} as bulbs in view, {lights.get('num_seen_in_probe', 0)} in the "
-            "mirror-ball probe); the others keep their nominal rig positions.",
+            "mirror-ball probe)"
+            + (
+                "; the others keep their nominal rig positions."
+                if lights.get("num_observed", 0) < lights.get("num_lights", 0)
+                else "."
+            ),
         ]
     return lines
 

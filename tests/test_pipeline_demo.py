@@ -60,7 +60,7 @@ def test_report_collects_pictures_and_metrics(tmp_path: Path) -> None:
     path = write_report(work, {"eval": 1.0}, {"envmap": "sky.exr", "tonemap": "srgb"}, 60.0, "tiny (seed 0)")
     text = path.read_text()
     assert "| light position (mm) | 1.24 | 3.03 |" in text and "| group yaw (deg) | 0.003 | 0.007 |" in text
-    assert "Lights observed: 16 of 16 (0 as bulbs in view, 16 in the mirror-ball probe)" in text
+    assert "Lights observed: 16 of 16 (0 as bulbs in view, 16 in the mirror-ball probe)." in text
     for pic in ("masks.png", "layout.png", "predictions.png", "relit_000_cam00_k016.png"):
         assert f"report/{pic}" in text
         assert (work.root / "report" / pic).is_file()
