@@ -23,14 +23,16 @@ BOUNDS_FORMAT_VERSION = 1
 @dataclass(frozen=True)
 class BoundsConfig:
     """Voxels per axis per pass, passes (each refines the previous box), the consistency a voxel needs (fraction
-    of the views that see it whose mask covers it), the least views (count, and fraction of all views) that must
-    see it inside their image (so regions outside most frusta are carved), and the box margin."""
+    of the views that see it inside their image whose mask covers it), the least views (count, and fraction of
+    all views) that must see it inside their image, and the margin of the unit-cube normalisation around the box.
+    A view judges only voxels that project inside its frame: what lies outside every frame (the stand below the
+    bottom edge of each view) is never observed and is carved."""
 
     resolution: int = 64
     passes: int = 2
     consistency: float = 0.9
     min_views: int = 2
-    min_seen: float = 0.5
+    min_seen: float = 0.0
     margin: float = 0.1
     force: bool = False
 
@@ -127,15 +129,20 @@ class _View:
 
 
 def carve(views: list[_View], lo: np.ndarray, hi: np.ndarray, cfg: BoundsConfig) -> np.ndarray:
-    """Boolean occupancy (n, n, n) of voxel centres in [lo, hi]: kept when, in at least `consistency` of the
-    views in front of which it lies, its projected footprint (a disc of the voxel's half-diagonal) touches the
-    mask (projections outside the image are tested at the nearest border pixel)."""
+    """Boolean occupancy (n, n, n) of voxel centres in [lo, hi]. A view votes on a voxel in front of it:
+    - projected inside the image: consistent when its footprint (a disc of the voxel's half-diagonal) touches
+      the mask;
+    - projected outside: inconsistent when the mask does not reach that border (nearest border pixel), else
+      it abstains (the object may continue out of frame there, but this view never saw it).
+    Kept: at least `need` views see the voxel inside their image and `consistency` of the votes agree. So the
+    stand below the bottom edge of every frame, seen by no view, is carved."""
     n = cfg.resolution
     step = (hi - lo) / n
     axes = [lo[i] + (np.arange(n) + 0.5) * step[i] for i in range(3)]
     X = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3).astype(np.float32)
     radius = 0.5 * float(np.linalg.norm(step))
-    seen = np.zeros(len(X), np.int32)
+    inside_views = np.zeros(len(X), np.int32)
+    votes = np.zeros(len(X), np.int32)
     hits = np.zeros(len(X), np.int32)
     for v in views:
         xc = X @ v.R.T.astype(np.float32) + v.t.astype(np.float32)
@@ -143,17 +150,17 @@ def carve(views: list[_View], lo: np.ndarray, hi: np.ndarray, cfg: BoundsConfig)
         front = z > 1e-6
         uv = (xc[:, :2] / np.where(front, z, 1.0)[:, None]) * np.diag(v.K)[:2] + v.K[:2, 2]
         h, w = v.dist_to_fg.shape
-        # Outside the image a voxel is judged at the nearest border pixel: consistent only where the mask
-        # touches the border there (the object may continue out of frame), otherwise carved.
         idx = np.flatnonzero(front)
-        ui = np.clip(uv[idx, 0], 0, w - 1).astype(int)
-        vi = np.clip(uv[idx, 1], 0, h - 1).astype(int)
-        d = v.dist_to_fg[vi, ui]
-        r_px = v.K[0, 0] * radius / z[idx] + 0.75
-        seen[idx] += 1
-        hits[idx] += d <= r_px
+        u_, v_ = uv[idx, 0], uv[idx, 1]
+        inside = (u_ >= 0) & (u_ < w) & (v_ >= 0) & (v_ < h)
+        d = v.dist_to_fg[np.clip(v_, 0, h - 1).astype(int), np.clip(u_, 0, w - 1).astype(int)]
+        near_mask = d <= v.K[0, 0] * radius / z[idx] + 0.75
+        counts = inside | ~near_mask  # outside the frame next to the mask: abstain
+        inside_views[idx] += inside
+        votes[idx] += counts
+        hits[idx] += inside & near_mask
     need = max(cfg.min_views, int(np.ceil(cfg.min_seen * len(views) - 1e-9)))
-    keep = (seen >= need) & (hits >= np.ceil(cfg.consistency * seen - 1e-9))
+    keep = (inside_views >= need) & (hits >= np.ceil(cfg.consistency * votes - 1e-9))
     return keep.reshape(n, n, n)
 
 

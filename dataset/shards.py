@@ -51,11 +51,19 @@ MANIFEST = "manifest.json"
 
 @dataclass(frozen=True)
 class ShardConfig:
-    """Rays per training image (split 4:3:1 fg/band/bg; 0 = auto), rays per shard, the padded border (pad the short image
-    side to a square, plus `border_px` all round; those rays have target 0), background target ('zero' as the
-    paper: every pixel outside the mask has target 0; 'pixel': keep values), seed, local processes."""
+    """Rays per training image, rays per shard, the sampling zones, the padded border (pad the short image side
+    to a square, plus `border_px` all round; those rays have target 0), background target ('zero' as the paper:
+    every pixel outside the mask has target 0; 'pixel': keep values), seed, local processes.
 
-    rays_per_image: int = 0  # 0: auto = min(8192, a quarter of the image's pixels), a multiple of 8
+    Rays per image (`rays_per_image` 0, the default) follow the data: `foreground_fraction` of the image's
+    foreground pixels, drawn without repetition (1.0: every foreground pixel of every training frame once per
+    epoch, as the paper's code streams them), plus 3/4 as many band and 1/4 as many background rays (the
+    paper's 1/2 : 3/8 : 1/8). The band is the outer ring of the mask `band_fraction` of the image width wide
+    (the paper's code: 200 px at 2048 x 1366). `rays_per_image` > 0 draws that fixed count per image in 4:3:1."""
+
+    rays_per_image: int = 0  # 0: in proportion to the image's foreground (foreground_fraction)
+    foreground_fraction: float = 1.0
+    band_fraction: float = 200 / 2048
     rays_per_shard: int = 1 << 20
     pad_to_square: bool = True
     border_px: int = 16
@@ -73,10 +81,16 @@ class ShardConfig:
             if k not in known:
                 raise LightstageError(f"shard config: unknown key {k!r} (known: {', '.join(sorted(known))})")
             want = type(getattr(cls(), k))
+            if want is float and isinstance(v, int) and not isinstance(v, bool):
+                v = float(v)
             if not isinstance(v, want) or (want is not bool and isinstance(v, bool)):
                 raise LightstageError(f"shard config: {k}: expected {want.__name__}, got {v!r}")
             out[k] = v
         cfg = cls(**out)
+        if not 0 < cfg.foreground_fraction <= 1 or not 0 <= cfg.band_fraction <= 1:
+            raise LightstageError(
+                "shard config: foreground_fraction must be in (0, 1] and band_fraction in [0, 1]"
+            )
         for k in ("rays_per_image", "rays_per_shard"):
             v = getattr(cfg, k)
             if k == "rays_per_image" and v == 0:
@@ -186,11 +200,30 @@ class ViewTask:
     chunk: str
 
 
-def image_quota(cfg: ShardConfig, width: int, height: int) -> int:
-    """Rays per training image: the configured count, or auto: min(8192, W*H/4) rounded down to a multiple of 8."""
+def sampling_zones(mask: np.ndarray, band_fraction: float) -> np.ndarray:
+    """uint8 (H, W) sampling zones: ZONE_FOREGROUND on the mask, ZONE_BAND within band_fraction * W pixels
+    outside it (an outer dilation that scales with the resolution), ZONE_BACKGROUND elsewhere."""
+    import cv2
+
+    zones = np.where(mask, ZONE_FOREGROUND, ZONE_BACKGROUND).astype(np.uint8)
+    width = band_fraction * mask.shape[1]
+    if width > 0 and mask.any() and not mask.all():
+        dist = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, 5)
+        zones[(dist > 0) & (dist <= width)] = ZONE_BAND
+    return zones
+
+
+def image_quotas(cfg: ShardConfig, foreground_pixels: int) -> tuple[int, int, int]:
+    """(fg, band, bg) rays of one training image: the fixed `rays_per_image` in 4:3:1, or in proportion to the
+    image's foreground (`foreground_fraction` of its pixels; band 3/4 and background 1/4 of that)."""
     if cfg.rays_per_image:
-        return cfg.rays_per_image
-    return max(8, min(8192, width * height // 4) // 8 * 8)
+        return quotas(cfg.rays_per_image)
+    fg = max(4, int(round(cfg.foreground_fraction * foreground_pixels)))
+    return (
+        fg,
+        int(round(fg * COMPOSITION[1] / COMPOSITION[0])),
+        int(round(fg * COMPOSITION[2] / COMPOSITION[0])),
+    )
 
 
 def quotas(total: int) -> tuple[int, int, int]:
@@ -214,25 +247,22 @@ def write_view_chunk(task: ViewTask) -> dict[str, Any]:
     view = ViewId(task.group, task.camera)
     K, R, t, dist = (np.array(x, np.float64) for x in (task.K, task.R, task.t, task.dist))
     W, H = task.width, task.height
-    zones = read_zones(work.zones(view))
-    if zones.shape != (H, W):
-        raise LightstageError(
-            f"{work.zones(view)}: zone map is {zones.shape[1]}x{zones.shape[0]}, camera is {W}x{H}"
-        )
-    mask_path = work.mask(view)
-    if mask_path.is_file():
-        from lightstage.dataset.bounds import read_mask
+    from lightstage.dataset.bounds import read_mask
 
-        keep_value = read_mask(mask_path)
-    else:
-        keep_value = zones == ZONE_FOREGROUND
+    mask_path = work.mask(view)
+    keep_value = read_mask(mask_path)
+    if keep_value.shape != (H, W):
+        raise LightstageError(
+            f"{mask_path}: mask is {keep_value.shape[1]}x{keep_value.shape[0]}, camera is {W}x{H}"
+        )
+    zones = sampling_zones(keep_value, cfg.band_fraction)
     if cfg.background_target == "pixel":
         keep_value = np.ones_like(keep_value)
     pools = {z: np.flatnonzero(zones.ravel() == z) for z in (ZONE_FOREGROUND, ZONE_BAND)}
     bg_img = np.flatnonzero(zones.ravel() == ZONE_BACKGROUND)
     pad = border_geometry(W, H, cfg)
     n_ring = ring_size(W, H, pad)
-    q = dict(zip(ZONES, quotas(image_quota(cfg, W, H)), strict=True))
+    q = dict(zip(ZONES, image_quotas(cfg, pools[ZONE_FOREGROUND].size), strict=True))
     blocks: dict[int, list[np.ndarray]] = {z: [] for z in ZONES}
     stats = {"duplicated": 0, "missing": {ZONE_NAMES[z]: 0 for z in ZONES}}
     lp = np.array(task.light_positions, np.float32).reshape(-1, 3)
@@ -304,8 +334,7 @@ class ShardTask:
     index: int
     num_shards: int
     per_zone: tuple[int, int, int]  # rays of each zone block in this shard
-    kept: tuple[int, int, int]  # T_z = num_shards * per_zone[z]
-    totals: tuple[int, int, int]  # N_z: rays of zone z over all chunks
+    totals: tuple[int, int, int]  # N_z: rays of zone z over all chunks (every one goes to some shard)
     chunks: tuple[str, ...]
     chunk_counts: tuple[tuple[int, int, int], ...]
     path: str
@@ -315,7 +344,7 @@ class ShardTask:
 def shard_range(k_lo: int, k_hi: int, s: int, S: int) -> tuple[int, int]:
     """(start, count) of shard s's piece of a chunk zone block whose kept rays have global indices [k_lo, k_hi).
 
-    Shard s owns the kept indices k = s (mod S) (so every shard gets exactly T / S rays of the zone); inside the
+    Shard s owns the indices k = s (mod S) (so shards differ by at most one ray of the zone); inside the
     chunk, whose block is already shuffled, those rays are taken as one contiguous piece: the pieces of shards
     0..S-1 tile the block's first k_hi - k_lo rays in order (one sequential read per chunk, each ray read once).
     """
@@ -341,12 +370,9 @@ def write_shard(task: ShardTask) -> dict[str, Any]:
         data = np.load(chunk, mmap_mode="r")
         starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
         for zi in range(len(ZONES)):
-            N, T = task.totals[zi], task.kept[zi]
             a, n = int(offsets[zi]), counts[zi]
-            if n and T:
-                k_lo = -(-a * T // N)  # kept rays: floor(k N / T) spreads the dropped surplus over all chunks
-                k_hi = -(-(a + n) * T // N)
-                start, count = shard_range(k_lo, k_hi, task.index, task.num_shards)
+            if n:
+                start, count = shard_range(a, a + n, task.index, task.num_shards)
                 if count:
                     lo = int(starts[zi]) + start
                     gathered[zi].append(np.array(data[lo : lo + count]))
@@ -477,17 +503,17 @@ def _map(fn: Any, items: list[Any], client: Any, workers: int, progress: bool, d
         return list(tqdm(pool.map(fn, items), total=len(items), desc=desc, disable=not progress))
 
 
-def _plan_shards(totals: np.ndarray, rays_per_shard: int) -> tuple[int, tuple[int, int, int]]:
-    """(number of shards, per-zone rays per shard): fixed-size shards in the 4:3:1 composition; fewer rays than
-    one shard -> one smaller shard (the largest multiple of 8 that the scarcest zone allows)."""
-    per = np.array(quotas(rays_per_shard))
-    S = int(np.min(totals // per))
-    if S >= 1:
-        return S, tuple(int(x) for x in per)  # type: ignore[return-value]
-    unit = int(np.min(totals // np.array(COMPOSITION)))
-    if unit < 1:
+def _plan_shards(totals: np.ndarray, rays_per_shard: int) -> int:
+    """Number of shards: about `rays_per_shard` rays each, every sampled ray kept (shard s holds the rays
+    k = s mod S of each zone, so shards differ by at most one ray per zone and keep the global composition)."""
+    if int(np.min(totals)) < 1:
         raise LightstageError(f"not enough rays for one shard (per zone fg/band/bg: {totals.tolist()})")
-    return 1, tuple(int(unit * c) for c in COMPOSITION)  # type: ignore[return-value]
+    return max(1, int(round(int(totals.sum()) / rays_per_shard)))
+
+
+def shard_zone_counts(totals: tuple[int, ...], S: int, s: int) -> tuple[int, int, int]:
+    """Rays of each zone in shard s of S: the count of k < N_z with k = s (mod S)."""
+    return tuple(max(0, (int(n) - s + S - 1) // S) for n in totals)  # type: ignore[return-value]
 
 
 def run_shard(
@@ -564,12 +590,12 @@ def run_shard(
     t_a = time.perf_counter() - t_a
     chunk_counts = tuple(tuple(int(x) for x in m["counts"]) for m in metas)
     totals = np.sum(np.array(chunk_counts, np.int64).reshape(-1, 3), axis=0)
-    S, per_zone = _plan_shards(totals, config.rays_per_shard)
-    kept = tuple(S * p for p in per_zone)
+    S = _plan_shards(totals, config.rays_per_shard)
+    kept = tuple(int(x) for x in totals)  # every sampled ray goes to a shard
     (root / "train").mkdir(parents=True, exist_ok=True)
     shard_tasks = [
         ShardTask(
-            s, S, per_zone, kept, tuple(int(x) for x in totals),  # type: ignore[arg-type]
+            s, S, shard_zone_counts(kept, S, s), kept,  # type: ignore[arg-type]
             tuple(t.chunk for t in view_tasks), chunk_counts,
             str(root / "train" / f"shard_{s:05d}.npy"), config.seed,
         )
@@ -617,10 +643,9 @@ def run_shard(
         "block_order": [ZONE_NAMES[z] for z in ZONES],
         "composition": {ZONE_NAMES[z]: c / 8 for z, c in zip(ZONES, COMPOSITION, strict=True)},
         "rays": rays,
-        "rays_per_shard": int(sum(per_zone)),
+        "rays_per_shard": int(max(r["rays"] for r in records)),
         "zone_counts": {ZONE_NAMES[z]: int(k) for z, k in zip(ZONES, kept, strict=True)},
         "sampled_zone_counts": {ZONE_NAMES[z]: int(k) for z, k in zip(ZONES, totals, strict=True)},
-        "dropped_rays": int(totals.sum() - sum(kept)),
         "duplicated_rays": int(sum(m.get("duplicated", 0) for m in metas)),
         "missing_zone_rays": {n: int(sum(m["missing"][n] for m in metas)) for n in ZONE_NAMES.values()},
         "bytes": nbytes,
@@ -653,7 +678,6 @@ def _summary(
         "shards": len(m["shards"]),
         "rays_per_shard": m["rays_per_shard"],
         "zone_counts": m["zone_counts"],
-        "dropped_rays": m["dropped_rays"],
         "duplicated_rays": m["duplicated_rays"],
         "bytes": m["bytes"],
         "bytes_per_ray": m["bytes_per_ray"],
@@ -665,10 +689,6 @@ def _summary(
         "warnings": [],
         "errors": [],
     }
-    if m["dropped_rays"]:
-        summary["warnings"].append(
-            f"{m['dropped_rays']} sampled rays dropped to keep shards fixed-size and 4:3:1"
-        )
     if any(m["missing_zone_rays"].values()):
         summary["warnings"].append(
             f"rays missing because a zone was empty in some views: {m['missing_zone_rays']}"

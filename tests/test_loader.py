@@ -23,7 +23,8 @@ def shards(tmp_path_factory):
     root = tmp_path_factory.mktemp("loader")
     work, _ = make_synthetic_work(root)
     run_split(work, SplitConfig("paper"), progress=False)
-    run_shard(work, ShardConfig(rays_per_image=64, rays_per_shard=256, workers=1), progress=False)
+    # 18 images x 64 rays in 3 shards of 384 = 6 whole batches of B each (the partition test relies on it)
+    run_shard(work, ShardConfig(rays_per_image=64, rays_per_shard=384, workers=1), progress=False)
     return work.shards_dir
 
 

@@ -19,6 +19,7 @@ from lightstage.dataset.shards import (
     ShardConfig,
     load_manifest,
     run_shard,
+    sampling_zones,
     verify_shards,
     view_rays,
 )
@@ -44,24 +45,30 @@ def _all_rays(work):
     return m, [np.load(work.shards_dir / s["file"]) for s in m["shards"]]
 
 
-def test_manifest_and_fixed_size_shards(sharded):
+def test_manifest_and_shards_keep_every_sampled_ray(sharded):
+    """Every sampled ray lands in exactly one shard; shards hold ~rays_per_shard rays each, differ by at most
+    one ray per zone, and keep the global 4:3:1 composition in fg | band | bg blocks."""
     work, _, summary = sharded
     m, shards = _all_rays(work)
     assert summary["shards"] == len(shards) >= 2
-    assert all(len(s) == m["rays_per_shard"] == 256 for s in shards)
-    assert m["zone_counts"] == {
-        "foreground": 128 * len(shards),
-        "band": 96 * len(shards),
-        "background": 32 * len(shards),
-    }
+    sampled = m["sampled_zone_counts"]
+    assert m["zone_counts"] == sampled == {"foreground": 32 * 18, "band": 24 * 18, "background": 8 * 18}
+    assert sum(len(s) for s in shards) == m["rays"] == 64 * 18
+    assert len(shards) == round(m["rays"] / 256)
     for s, rec in zip(shards, m["shards"], strict=True):
         assert s.dtype == RAY_DTYPE and RAY_DTYPE.itemsize == 64
+        fg, band, bg = (rec["zones"][k] for k in ("foreground", "band", "background"))
+        for n, total in zip((fg, band, bg), sampled.values(), strict=True):
+            assert abs(n - total / len(shards)) < 1
         # blocks: foreground | band | background
         z = s["zone"]
-        assert (z[:128] == ZONE_FOREGROUND).all() and (z[128:224] == ZONE_BAND).all()
-        assert (z[224:] == ZONE_BACKGROUND).all()
-        assert rec["zones"] == {"foreground": 128, "band": 96, "background": 32}
+        assert (z[:fg] == ZONE_FOREGROUND).all() and (z[fg : fg + band] == ZONE_BAND).all()
+        assert (z[fg + band :] == ZONE_BACKGROUND).all()
         assert len(set(s["view"].tolist())) > 1  # shuffled across images
+    every = np.concatenate(shards)
+    fg = every[every["zone"] == ZONE_FOREGROUND]
+    keys = np.column_stack([fg["view"], fg["light"], fg["pixel"]]).astype(np.int64)
+    assert len(np.unique(keys, axis=0)) == len(fg)  # no foreground ray twice (drawn without repetition)
     assert 64 <= summary["bytes_per_ray"] < 70
     n = m["normalization"]
     assert n["scale"] > 0 and len(n["centre"]) == 3
@@ -94,8 +101,8 @@ def test_round_trip_rays_rederived_from_calibration(sharded):
         np.testing.assert_array_equal(sel["light_direction"], ld.astype(np.float32))
         import cv2
 
-        zones = cv2.imread(str(work.zones(v)), cv2.IMREAD_UNCHANGED)
         mask = cv2.imread(str(work.mask(v)), cv2.IMREAD_UNCHANGED) > 0
+        zones = sampling_zones(mask, CFG.band_fraction)  # the shard stage's zones: mask + outer band
         for r in sel:
             f = FrameId(v.group, v.camera, int(r["light"]))
             assert f in train

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from lightstage.cameras import PinholeCamera
+from lightstage.capture.layout import FrameId
 from lightstage.errors import LightstageError
 from lightstage.training.data import TestImage
 from lightstage.workdir import WorkDir
@@ -34,10 +35,12 @@ class ShardSource:
             self.work.shards_dir, self.batch_size, seed=self.seed, rank=rank, world_size=world_size
         )
 
-    def normalization(self) -> tuple[list[float], float]:
-        """(centre, scale) the shards were written with."""
-        norm = self.dataset().normalization
-        return list(norm["centre"]), float(norm["scale"])
+    def normalization(self) -> tuple[list[float], float, list[list[float]] | None]:
+        """(centre, scale, box) the shards were written with; box = [box_min, box_max] in world metres, or
+        None for shards without one (samples then fill the unit cube)."""
+        norm = self.dataset().manifest["normalization"]
+        box = [list(norm["box_min"]), list(norm["box_max"])] if "box_min" in norm else None
+        return list(norm["centre"]), float(norm["scale"]), box
 
     def batches(
         self, start: int = 0, rank: int = 0, world_size: int = 1
@@ -70,9 +73,16 @@ def count_test_images(work: WorkDir) -> int:
 
 
 def read_test_image(path: Path) -> TestImage:
-    """One shards/test/*.npz (rgb, saturated, K, R, t, dist, width, height, light_direction) as a TestImage."""
+    """One shards/test/*.npz (rgb, saturated, K, R, t, dist, width, height, light_direction; mask and the
+    frame's group/camera/light when written) as a TestImage."""
     try:
         with np.load(path) as z:
+            mask = np.array(z["mask"], bool) if "mask" in z.files else None
+            frame = (
+                FrameId(str(z["group"]), str(z["camera"]), int(z["light"]))
+                if {"group", "camera", "light"} <= set(z.files)
+                else None
+            )
             cam = PinholeCamera(
                 np.array(z["K"], np.float64),
                 np.array(z["R"], np.float64),
@@ -87,6 +97,8 @@ def read_test_image(path: Path) -> TestImage:
                 np.array(z["light_direction"], np.float64).reshape(3),
                 np.array(z["rgb"], np.float32),
                 np.array(z["saturated"], bool),
+                mask,
+                frame,
             )
     except (OSError, ValueError, KeyError) as e:
         raise LightstageError(f"{path}: unreadable test image ({e})") from e

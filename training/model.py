@@ -2,7 +2,8 @@
 or one hash-grid field with an occupancy grid (`fast`), chosen by `ModelConfig`.
 
 World rays are mapped into the unit cube with x_norm = (x - centre) / scale (directions unchanged, lengths in
-normalised units); samples lie between the ray's entry and exit of [-1, 1]^3, and rays that miss render 0.
+normalised units); samples lie between the ray's entry and exit of the scene box (the carved visual hull's box,
+in normalised coordinates inside [-1, 1]^3; the whole cube when none is given), and rays that miss render 0.
 """
 
 from __future__ import annotations
@@ -27,11 +28,23 @@ class RelightModel(nn.Module):
     """forward(origins, directions, light_directions) in world coordinates -> dict with the HDR pixel `rgb` (R, 3),
     the fine densities `sigma` (R, S), and `rgb_coarse` / `sigma_coarse` when a coarse field exists."""
 
-    def __init__(self, cfg: ModelConfig, centre: torch.Tensor | list[float], scale: float):
+    def __init__(
+        self,
+        cfg: ModelConfig,
+        centre: torch.Tensor | list[float],
+        scale: float,
+        box: torch.Tensor | list | None = None,
+    ):
+        """`box`: (2, 3) world min / max corners that samples are confined to (None: the whole unit cube)."""
         super().__init__()
         self.cfg = cfg
         self.register_buffer("centre", torch.as_tensor(centre, dtype=torch.float32).reshape(3).clone())
         self.register_buffer("scale", torch.tensor(float(scale), dtype=torch.float32))
+        if box is None:
+            norm_box = torch.tensor([[-1.0] * 3, [1.0] * 3])
+        else:
+            norm_box = self.normalise(torch.as_tensor(box, dtype=torch.float32).reshape(2, 3))
+        self.register_buffer("box", norm_box.clamp(-1.0, 1.0))
         self.coarse = make_field(cfg) if cfg.n_coarse > 0 else None
         self.fine = make_field(cfg)
         self.occupancy = None
@@ -54,7 +67,7 @@ class RelightModel(nn.Module):
         o = self.normalise(origins.float())
         d = torch.nn.functional.normalize(directions.float(), dim=-1)
         light = torch.nn.functional.normalize(light_directions.float(), dim=-1)
-        near, far = ray_box(o, d)
+        near, far = ray_box(o, d, self.box[0], self.box[1])
         out: dict[str, torch.Tensor] = {}
         if self.coarse is not None:
             edges_c = stratified_edges(near, far, self.cfg.n_coarse, randomized)
@@ -105,7 +118,7 @@ class RelightModel(nn.Module):
         self.occupancy.update(self.fine.density, seed=seed * 1_000_003 + step)
 
     def density(self, points_world: torch.Tensor) -> torch.Tensor:
-        """(N,) fine-field density at world points; 0 outside the normalised unit cube."""
+        """(N,) fine-field density at world points; 0 outside the scene box."""
         x = self.normalise(points_world.float())
-        inside = (x.abs() <= 1.0).all(-1)
+        inside = ((x >= self.box[0]) & (x <= self.box[1])).all(-1)
         return torch.where(inside, self.fine.density(x.clamp(-1.0, 1.0)), torch.zeros_like(x[:, 0]))

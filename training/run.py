@@ -59,7 +59,7 @@ def run_train(
         source = ShardSource(
             work, config.optim.batch_rays // world, seed=config.seed, workers=config.loader_workers
         )
-        centre, scale = source.normalization()
+        centre, scale, box = source.normalization()
         tests = []
         if config.eval.every and rank == 0:
             tests = [img for _, img in zip(range(config.eval.images), iter_test_images(work), strict=False)]
@@ -70,6 +70,7 @@ def run_train(
             work.train_dir,
             centre,
             scale,
+            box=box,
             device=dev,
             test_images=tests,
             progress=progress,

@@ -7,13 +7,17 @@ import torch
 
 
 def ray_box(
-    origins: torch.Tensor, directions: torch.Tensor, bound: float = 1.0
+    origins: torch.Tensor,
+    directions: torch.Tensor,
+    lo: torch.Tensor | float = -1.0,
+    hi: torch.Tensor | float = 1.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(near, far) of rays (normalised coordinates) inside [-bound, bound]^3; rays that miss get far = near."""
+    """(near, far) of rays (normalised coordinates) inside the box [lo, hi] (scalars or (3,) corners; default
+    the unit cube [-1, 1]^3); rays that miss get far = near."""
     safe = torch.where(directions.abs() < 1e-12, torch.full_like(directions, 1e-12), directions)
     inv = 1.0 / safe
-    t0 = (-bound - origins) * inv
-    t1 = (bound - origins) * inv
+    t0 = (lo - origins) * inv
+    t1 = (hi - origins) * inv
     near = torch.minimum(t0, t1).amax(-1).clamp(min=0.0)
     far = torch.maximum(t0, t1).amin(-1)
     return near, torch.maximum(far, near)

@@ -95,6 +95,7 @@ def load_trained(
     config = TrainConfig.from_dict(ck["config"])
     state = ck["model"]
     model = RelightModel(config.model, state["centre"].cpu(), float(state["scale"]))
+    state.setdefault("box", model.box.clone())  # checkpoints from before the scene box sampled the unit cube
     model.load_state_dict(state)
     stats = ck.get("stats", {})
     return TrainedModel(

@@ -85,6 +85,7 @@ def fit(
     centre: Sequence[float],
     scale: float,
     *,
+    box: Sequence[Sequence[float]] | None = None,
     device: str | torch.device = "cpu",
     test_images: Sequence[TestImage] = (),
     progress: bool = True,
@@ -104,7 +105,7 @@ def fit(
     np.random.seed(cfg.seed + rank)  # noqa: NPY002 (seed the global RNG third-party code may use)
     random.seed(cfg.seed + rank)
 
-    model = RelightModel(cfg.model, centre, scale).to(device)
+    model = RelightModel(cfg.model, centre, scale, box).to(device)
     opt = torch.optim.Adam(
         model.parameters(),
         lr=ocfg.lr,
@@ -290,24 +291,34 @@ def preview(
     log=None,
     train_seconds: float = 0.0,
 ) -> list[float]:
-    """Render a few test images, write prediction | target PNGs and return their PSNRs."""
+    """Render a few test images, write prediction | masked target PNGs and return their PSNRs against the
+    masked target (evaluation's headline metric; the full-frame PSNR is logged beside it)."""
     from lightstage.training.evaluate import render_image, side_by_side
     from lightstage.training.metrics import image_metrics
 
     was_training = model.training
     model.eval()
-    psnrs = []
+    psnrs, full = [], []
     for k, img in enumerate(images):
         pred = render_image(model, img.camera, img.light_direction, chunk)
-        m = image_metrics(pred, img.target, stats.exposure)
+        m = image_metrics(pred, img.masked_target, stats.exposure)
         psnrs.append(m["psnr"])
-        png = side_by_side(pred, img.target, stats.exposure)
+        full.append(
+            image_metrics(pred, img.target, stats.exposure)["psnr"] if img.mask is not None else m["psnr"]
+        )
+        png = side_by_side(pred, img.masked_target, stats.exposure)
         folder.mkdir(parents=True, exist_ok=True)
         _write_png(folder / f"step{step:07d}_{k}.png", png)
         if log is not None and log.tb is not None:
             log.tb.add_image(f"preview/{k}", png, step, dataformats="HWC")
     if log is not None:
-        log.add_eval(step, float(np.mean(psnrs)), train_seconds)
+        log.add_eval(
+            step,
+            float(np.mean(psnrs)),
+            train_seconds,
+            psnr_full=float(np.mean(full)),
+            images=[img.name for img in images],
+        )
     model.train(was_training)
     return psnrs
 
@@ -356,8 +367,9 @@ class _Log:
                 if k != "step":
                     self.tb.add_scalar(f"train/{k}", v, row["step"])
 
-    def add_eval(self, step: int, psnr: float, train_seconds: float = 0.0) -> None:
-        self.evals.append({"step": step, "psnr": psnr, "train_seconds": train_seconds})
+    def add_eval(self, step: int, psnr: float, train_seconds: float = 0.0, **extra: Any) -> None:
+        """A periodic evaluation: `psnr` against the masked target; extra keys (psnr_full, images) kept."""
+        self.evals.append({"step": step, "psnr": psnr, "train_seconds": train_seconds, **extra})
         if self.tb is not None:
             self.tb.add_scalar("eval/psnr", psnr, step)
 
