@@ -1,10 +1,12 @@
-"""Training throughput (rays per second, forward + backward + Adam step) of the `paper` and `fast` configs on
-the synthetic sphere problem, on CPU and, when present, on CUDA.
+"""Training throughput (rays per second, forward + backward + Adam step) of every built-in config (or the
+ones named) on the synthetic sphere problem, on CPU and, when present, on CUDA.
 
-For `fast` the occupancy grid is set from the analytic sphere (what training converges to) so empty-space
-skipping is measured as it behaves after warm-up; `--no-occupancy-prefill` measures the all-occupied start.
+For configs with an occupancy grid (`fast`) the grid is set from the analytic sphere (what training converges
+to) so empty-space skipping is measured as it behaves after warm-up; `--no-occupancy-prefill` measures the
+all-occupied start. Every config runs at the same batch, so the ratios printed at the end compare equal work.
 
-    python bench/train_throughput.py [--configs paper fast] [--batch 4096] [--steps 5] [--devices cpu cuda]
+    python bench/train_throughput.py [--configs paper paper-lite fast tiny] [--batch 4096] [--steps 5]
+                                     [--devices cpu cuda]
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import time
 
 import torch
 
-from lightstage.training.config import load_config
+from lightstage.training.config import BUILTIN_CONFIGS, load_config
 from lightstage.training.losses import total_loss
 from lightstage.training.model import RelightModel
 from lightstage.training.synthetic import SyntheticSphere
@@ -76,7 +78,12 @@ def measure(name: str, device: str, batch: int, steps: int, warmup: int, prefill
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--configs", nargs="+", default=["paper", "fast"])
+    ap.add_argument(
+        "--configs",
+        nargs="+",
+        default=list(BUILTIN_CONFIGS),
+        help="built-in names or YAML files (default: all)",
+    )
     ap.add_argument("--devices", nargs="+", default=["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"])
     ap.add_argument(
         "--batch", type=int, default=None, help="rays per step (default 4096 on CUDA, 1024 on CPU)"
@@ -98,8 +105,13 @@ def main() -> None:
             results.append(r)
     by = {(r["device"], r["config"]): r["rays_per_s"] for r in results}
     for device in args.devices:
-        if (device, "paper") in by and (device, "fast") in by:
-            print(f"{device}: fast / paper = {by[(device, 'fast')] / by[(device, 'paper')]:.1f}x")
+        if (device, "paper") in by:
+            ratios = ", ".join(
+                f"{name} {by[(device, name)] / by[(device, 'paper')]:.1f}x"
+                for name in args.configs
+                if name != "paper" and (device, name) in by
+            )
+            print(f"{device}: rays/s relative to paper: {ratios}")
 
 
 if __name__ == "__main__":

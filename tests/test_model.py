@@ -71,3 +71,66 @@ def test_config_rejects_unknown_keys_and_bad_types():
     assert (paper.model.mlp.depth, paper.model.mlp.width, paper.model.mlp.skip) == (8, 256, 4)
     assert (paper.model.n_coarse, paper.model.n_fine, paper.optim.batch_rays) == (64, 128, 4096)
     assert TrainConfig.from_dict(paper.to_dict()) == paper
+
+
+def _linear(n_in: int, n_out: int) -> int:
+    return n_in * n_out + n_out
+
+
+def test_paper_config_is_the_papers_architecture():
+    """Sec. 3.4: per level (coarse, fine) an 8 x 256 density MLP and a separate 8 x 256 transfer-gradient MLP,
+    each with the skip (input re-injected) at the fourth layer; exp-activated 3-channel h."""
+    from lightstage.training.encoding import encoded_dim
+
+    cfg = load_config("paper")
+    m = cfg.model.mlp
+    assert (m.h_mlp, m.depth, m.width, m.skip, m.h_depth, m.h_width, m.h_skip) == (
+        "separate",
+        8,
+        256,
+        4,
+        8,
+        256,
+        4,
+    )
+    pos = 3 * (1 + 2 * 10)  # PE(x) with 10 frequencies plus the identity: 63
+    dirs = 2 * 3 * (1 + 2 * 4)  # PE(view, 4) and PE(light, 4): 27 each
+    assert encoded_dim(m.pos_freqs) == pos and encoded_dim(m.dir_freqs) + encoded_dim(m.light_freqs) == dirs
+
+    def mlp(n_in: int) -> tuple[list[tuple[int, int]], int]:
+        shapes = [(256, n_in)] + [(256, 256 + (n_in if i == 4 else 0)) for i in range(1, 8)]
+        return shapes, sum(_linear(i, o) for o, i in shapes)
+
+    density_shapes, density_params = mlp(pos)
+    h_shapes, h_params = mlp(pos + dirs)
+    per_level = density_params + _linear(256, 1) + h_params + _linear(256, 3)
+    assert per_level == 1_014_788  # the hand count: 493,313 density + 521,475 transfer gradient
+
+    model = RelightModel(cfg.model, centre=[0.0, 0.0, 0.0], scale=1.0)
+    for field in (model.coarse, model.fine):
+        assert [tuple(layer.weight.shape) for layer in field.trunk] == density_shapes
+        assert tuple(field.sigma.weight.shape) == (1, 256)
+        assert [tuple(layer.weight.shape) for layer in field.h_mlp] == h_shapes
+        assert tuple(field.h_out.weight.shape) == (3, 256)
+        assert sum(p.numel() for p in field.parameters()) == per_level
+        assert torch.all(field.h_out.bias == cfg.model.h_bias_init)
+    assert sum(p.numel() for p in model.parameters()) == 2 * per_level
+    # the transfer MLP does not read the density MLP: h is unchanged when only the density MLP changes
+    x = torch.rand(5, 3) * 2 - 1
+    v = torch.nn.functional.normalize(torch.randn(5, 3), dim=-1)
+    with torch.no_grad():
+        s0, h0 = model.fine(x, v, v)
+        for p in model.fine.trunk.parameters():
+            p.add_(0.1)
+        s1, h1 = model.fine(x, v, v)
+    assert torch.equal(h0, h1) and not torch.equal(s0, s1)
+    assert torch.all(h0 > 0) and h0.shape == (5, 3)
+
+
+def test_paper_lite_keeps_the_shared_trunk_head():
+    cfg = load_config("paper-lite")
+    assert cfg.model.mlp.h_mlp == "head" and (cfg.model.mlp.depth, cfg.model.mlp.width) == (8, 256)
+    field = RelightModel(cfg.model, centre=[0.0, 0.0, 0.0], scale=1.0).fine
+    assert not hasattr(field, "h_mlp") and hasattr(field, "head")
+    with pytest.raises(LightstageError, match="h_mlp"):
+        TrainConfig.from_dict({"model": {"mlp": {"h_mlp": "shared"}}})

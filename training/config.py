@@ -1,7 +1,8 @@
 """Typed training configuration (model, losses, optimiser, evaluation) loaded from YAML.
 
 `TrainConfig.from_dict` rejects unknown keys and wrong types with a LightstageError naming the key, so a typo
-in a config file never silently falls back to a default. Built-in configs: `paper`, `fast`, `tiny`.
+in a config file never silently falls back to a default. Built-in configs: `paper` (the paper's Sec. 3.4
+architecture), `paper-lite` (its density MLP with a small h head on a shared trunk), `fast`, `tiny`.
 """
 
 from __future__ import annotations
@@ -19,18 +20,25 @@ import yaml
 
 from lightstage.errors import LightstageError
 
-BUILTIN_CONFIGS = ("paper", "fast", "tiny")
+BUILTIN_CONFIGS = ("paper", "paper-lite", "fast", "tiny")
 
 
 @dataclass
 class MLPConfig:
-    """The paper's NeRF-style MLP: `depth` x `width` trunk with the encoded position re-injected at `skip`."""
+    """NeRF-style MLPs: a `depth` x `width` density MLP on the encoded position (re-injected at `skip`), and the
+    transfer gradient h either from a small head on that MLP's feature (`h_mlp: head`, `head_depth` x
+    `head_width`) or from its own `h_depth` x `h_width` MLP on [PE(x), PE(view), PE(light)] (`h_mlp: separate`,
+    re-injected at `h_skip`): the paper's Sec. 3.4 form, selected by `paper.yaml`."""
 
     depth: int = 8
     width: int = 256
     skip: int = 4
-    head_width: int = 128
-    head_depth: int = 1  # hidden layers of the h head (NeRF: 1)
+    h_mlp: str = "head"  # head | separate (the default keeps configs and checkpoints written before it)
+    head_width: int = 128  # h_mlp: head only
+    head_depth: int = 1  # hidden layers of the h head (NeRF: 1); h_mlp: head only
+    h_depth: int = 8  # h_mlp: separate only (paper: 8)
+    h_width: int = 256  # h_mlp: separate only (paper: 256)
+    h_skip: int = 4  # h_mlp: separate only (paper: 4)
     pos_freqs: int = 10
     dir_freqs: int = 4
     light_freqs: int = 4
@@ -206,6 +214,12 @@ def _validate(cfg: TrainConfig) -> None:
         (m.density_activation in ("softplus", "relu"), "model.density_activation must be softplus or relu"),
         (m.n_fine >= 1 and m.n_coarse >= 0, "model.n_fine must be >= 1 and model.n_coarse >= 0"),
         (0 < m.mlp.skip < m.mlp.depth or m.mlp.skip == 0, "model.mlp.skip must be 0 or inside the trunk"),
+        (m.mlp.h_mlp in ("head", "separate"), "model.mlp.h_mlp must be head or separate"),
+        (m.mlp.h_depth >= 1 and m.mlp.h_width >= 1, "model.mlp.h_depth and model.mlp.h_width must be >= 1"),
+        (
+            0 < m.mlp.h_skip < m.mlp.h_depth or m.mlp.h_skip == 0,
+            "model.mlp.h_skip must be 0 or inside the h MLP",
+        ),
         (cfg.optim.schedule in ("exponential", "cosine"), "optim.schedule must be exponential or cosine"),
         (cfg.optim.precision in ("bf16", "fp16", "fp32"), "optim.precision must be bf16, fp16 or fp32"),
         (cfg.optim.steps >= 1 and cfg.optim.batch_rays >= 1, "optim.steps and optim.batch_rays must be >= 1"),
@@ -218,7 +232,7 @@ def _validate(cfg: TrainConfig) -> None:
 
 
 def load_config(name_or_path: str | Path, overrides: dict[str, Any] | None = None) -> TrainConfig:
-    """A built-in config by name (`paper`, `fast`, `tiny`) or a YAML file, with optional nested overrides."""
+    """A built-in config by name (BUILTIN_CONFIGS) or a YAML file, with optional nested overrides."""
     text_name = str(name_or_path)
     if text_name in BUILTIN_CONFIGS:
         text = resources.files("lightstage.training").joinpath("configs", f"{text_name}.yaml").read_text()
