@@ -1,4 +1,5 @@
-"""Mesh extraction: marching cubes of an analytic sphere density lands at the right radius in world units."""
+"""Mesh extraction: marching cubes of an analytic sphere density lands at the right radius in world units; the
+default level comes from the field's transmittance (surface_level) and works on a trained checkpoint."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from lightstage.training.mesh import (
     extract_mesh,
     read_ply,
     run_mesh,
+    surface_level,
     write_ply,
 )
 from lightstage.workdir import WorkDir
@@ -110,3 +112,110 @@ def test_run_mesh_writes_ply_and_summary(tmp_path):
         MeshConfig.from_dict({"resolution": "high"})
     with pytest.raises(LightstageError, match="resolution must be"):
         density_grid(model, 1)
+
+
+class SoftBlob:
+    """A smooth Gaussian-profile density (like a barely trained field): A exp(-(r / w)^2) about `centre`."""
+
+    def __init__(self, amplitude=20.0, width=0.3):
+        self.centre = np.array([0.0, 0.1, -0.2])
+        self.scale = np.array([0.5, 0.5, 0.5])
+        self.amplitude, self.width = amplitude, width
+
+    def density(self, points_world):
+        p = torch.as_tensor(points_world, dtype=torch.float32)
+        r = torch.linalg.norm(p - torch.as_tensor(self.centre, dtype=torch.float32), dim=-1)
+        return self.amplitude * torch.exp(-((r / self.width) ** 2))
+
+
+def test_default_level_from_transmittance_on_a_sharp_sphere(tmp_path):
+    model = SphereDensity()
+    n = 32
+    out = tmp_path / "sphere.ply"
+    summary = run_mesh(
+        WorkDir.at(tmp_path), MeshConfig(resolution=n, out=str(out)), progress=False, model=model
+    )
+    assert 0.0 < summary["threshold"] < 100.0 and summary["threshold_rule"] != "given"
+    v, _ = read_ply(out)
+    r = np.linalg.norm(v - model.sphere_centre, axis=1)
+    voxel = (2 * model.scale / (n - 1)).max()
+    assert abs(r.mean() - model.radius) < 0.5 * voxel and r.std() < 0.3 * voxel
+
+
+def test_default_level_is_where_rays_reach_half_transmittance_and_stable_in_resolution():
+    blob = SoftBlob()
+    levels = {}
+    for n in (33, 65):
+        grid = density_grid(blob, n, progress=False)
+        got = surface_level(grid)
+        levels[n] = got["level"]
+        assert 0 < got["rays"] < got["rays_total"] == 6 * n * n
+        assert float(grid.min()) < got["level"] < float(grid.max())
+    assert levels[33] == pytest.approx(levels[65], rel=0.03)
+    # the central axis ray, entering at x = -1 (normalised): its T = 1/2 point, by a fine 1D integral
+    s = np.linspace(-1.0, 0.0, 200001)
+    r_world = np.abs(s) * blob.scale[0]
+    sigma = blob.amplitude * np.exp(-((r_world / blob.width) ** 2))
+    tau = np.concatenate([[0.0], np.cumsum(0.5 * (sigma[1:] + sigma[:-1]) * np.diff(s))])
+    central = sigma[np.searchsorted(tau, np.log(2.0))]
+    # rays off the centre cross at lower densities (they pass less matter), so the median is below the centre's
+    assert 0.2 * central < levels[65] < central
+
+
+def test_transparent_field_and_bad_extension_are_errors(tmp_path):
+    blob = SoftBlob(amplitude=0.1)
+    with pytest.raises(LightstageError, match="transparent.*--threshold"):
+        run_mesh(
+            WorkDir.at(tmp_path), MeshConfig(resolution=8, out=str(tmp_path / "m.ply")), False, False, blob
+        )
+    model = SphereDensity()
+    for bad in ("mesh.obj", "mesh", "mesh.ply.gz"):
+        with pytest.raises(LightstageError, match=r"\.ply"):
+            run_mesh(WorkDir.at(tmp_path), MeshConfig(resolution=8, out=str(tmp_path / bad)), progress=False,
+                     model=model)  # fmt: skip
+    assert model.queries == 0  # refused before any density query
+    # an explicit threshold still overrides the rule
+    summary = run_mesh(
+        WorkDir.at(tmp_path),
+        MeshConfig(resolution=16, threshold=50.0, out=str(tmp_path / "M.PLY")),
+        progress=False,
+        model=model,
+    )
+    assert summary["threshold"] == 50.0 and summary["threshold_rule"] == "given"
+
+
+@pytest.fixture(scope="module")
+def trained_sphere_work(tmp_path_factory):
+    """A work dir with a briefly trained micro checkpoint of the synthetic sphere (about 10 s on one core)."""
+    from lightstage.training.synthetic import SyntheticSphere
+    from lightstage.training.testing import micro_config
+    from lightstage.training.trainer import fit
+
+    work = WorkDir.at(tmp_path_factory.mktemp("mesh") / "work")
+    cfg = micro_config(200, 64, checkpoint_every=200)
+    cfg.optim.lr = 2e-2
+    sphere = SyntheticSphere(batch_size=64)
+    fit(cfg, sphere, work.train_dir, sphere.centre, sphere.scale, progress=False)
+    return work, sphere
+
+
+@pytest.mark.slow
+def test_cli_mesh_default_level_on_a_trained_checkpoint(trained_sphere_work, tmp_path, capsys):
+    from lightstage.pipelines.cli import main
+
+    work, sphere = trained_sphere_work
+    out = tmp_path / "m.ply"
+    assert main(["mesh", str(work.root), "--resolution", "24", "--device", "cpu", "--out", str(out)]) == 0
+    summary = json.loads(out.with_suffix(".json").read_text())
+    lo, hi = summary["density_range"]
+    assert lo < summary["threshold"] < hi and summary["vertices"] > 100
+    v, _ = read_ply(out)
+    c = np.asarray(sphere.centre)
+    assert np.all(v >= c - sphere.scale - 1e-4) and np.all(v <= c + sphere.scale + 1e-4)
+    assert np.linalg.norm(v.mean(axis=0) - c) < 0.1  # a closed blob around the sphere, not the box's walls
+    r = np.linalg.norm(v - c, axis=1)
+    assert 0.25 < np.median(r) < 0.7  # true radius 0.5; a 200-step micro model is soft
+    capsys.readouterr()
+    assert main(["mesh", str(work.root), "--resolution", "8", "--out", str(tmp_path / "m.obj")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lightstage: error:") and err.count("\n") == 1 and ".ply" in err

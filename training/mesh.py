@@ -1,10 +1,23 @@
 """Meshes from a trained model's density (`lightstage mesh`): density on an N^3 grid over the normalised scene
 bounds [-1, 1]^3 (queried in chunks, on the GPU when present), marching cubes (scikit-image) at a density
-threshold, vertices in world units (metres), binary PLY output.
+level, vertices in world units (metres), binary PLY output.
+
+The level (`surface_level`, used unless `threshold` is given) comes from the transmittance the field implies,
+so it needs no constant tuned on one model's density scale: along every grid line through the bounds, in both
+directions of all three axes (6 N^2 rays entering at a face of the cube), the optical depth
+tau = integral of sigma ds (trapezoid rule, s in the model's normalised units, the ones sigma is trained in)
+is accumulated from the entry face; the ray's median-depth point is where tau first reaches ln 2, i.e. where its
+transmittance falls to 1/2 and half of an opaque ray's weight lies in front. The level is the median, over all
+rays that get there, of the density at that point. Marching cubes at that level therefore puts the surface where
+the renderer's rays see it (for a sharp field any level up the density edge gives the same surface; for a soft,
+barely trained one the level adapts to its scale), it does not move with `resolution` beyond discretisation, and
+it always lies inside the grid's density range. A field with no such ray (transparent everywhere) has no surface
+by this rule: that is an error naming the density range, and `threshold` chooses a level by hand.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,11 +37,11 @@ class MeshConfig:
     """Options of `lightstage mesh`."""
 
     resolution: int = 256  # grid points per axis over [-1, 1]^3
-    threshold: float = 50.0  # density level of the surface (the model's density units)
+    threshold: float | None = None  # density level (the model's units); None: `surface_level` of the field
     chunk: int = 262144  # points per density query
     checkpoint: str | None = None
     device: str = "auto"  # "auto": cuda when available, else cpu
-    out: str = "mesh.ply"
+    out: str = "mesh.ply"  # only .ply is written
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> MeshConfig:
@@ -93,6 +106,60 @@ def density_grid(
             flat[start : start + idx.shape[0]] = sigma.detach().float().cpu().numpy()
             bar.update(idx.shape[0])
     return out
+
+
+MESH_SUFFIXES = (".ply",)
+
+
+def check_out_path(out: str | Path) -> Path:
+    """`out` as a Path when its extension is one this module writes (.ply), else a LightstageError."""
+    path = Path(out)
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise LightstageError(
+            f"{path}: cannot write a {path.suffix or 'extension-less'} mesh; "
+            f"--out must end in {' or '.join(MESH_SUFFIXES)} (binary PLY)"
+        )
+    return path
+
+
+def surface_level(grid: np.ndarray) -> dict[str, Any]:
+    """The density level of the field's median-depth surface (module docstring): {'level', 'rays' (that reach
+    transmittance 1/2), 'rays_total'}. `grid` spans [-1, 1] per axis in the model's normalised units."""
+    grid = np.nan_to_num(np.asarray(grid, np.float32), nan=0.0, posinf=np.float32(3e38))
+    lo, hi = float(grid.min()), float(grid.max())
+    ln2 = math.log(2.0)
+    values: list[np.ndarray] = []
+    total, peak = 0, 0.0
+    for axis in range(3):
+        g = np.moveaxis(grid, axis, -1)
+        step = 2.0 / (g.shape[-1] - 1)
+        for line in (g, g[..., ::-1]):
+            tau = np.zeros(line.shape, np.float32)
+            np.cumsum((line[..., 1:] + line[..., :-1]) * np.float32(0.5 * step), axis=-1, out=tau[..., 1:])
+            total += tau[..., 0].size
+            peak = max(peak, float(tau[..., -1].max()))
+            reached = tau[..., -1] >= ln2
+            if not reached.any():
+                continue
+            t, s = tau[reached], line[reached]
+            k = np.argmax(t >= ln2, axis=-1)[:, None]  # >= 1: tau starts at 0
+            t0, t1 = np.take_along_axis(t, k - 1, -1)[:, 0], np.take_along_axis(t, k, -1)[:, 0]
+            s0, s1 = np.take_along_axis(s, k - 1, -1)[:, 0], np.take_along_axis(s, k, -1)[:, 0]
+            f = (ln2 - t0) / np.maximum(t1 - t0, np.float32(1e-30))
+            values.append(s0 + f * (s1 - s0))
+    if not values:
+        raise LightstageError(
+            f"the field is transparent along every grid line through the bounds (largest optical depth "
+            f"{peak:.3g} < ln 2): no surface at transmittance 1/2; choose --threshold inside its density range "
+            f"[{lo:g}, {hi:g}]"
+        )
+    v = np.concatenate(values)
+    level = float(np.median(v))
+    # a plateau (e.g. a binary field) can put the median on the range's end: any level on its edge is the same
+    # surface, so keep it strictly inside for marching cubes
+    margin = 1e-3 * (hi - lo)
+    level = min(max(level, lo + margin), hi - margin)
+    return {"level": level, "rays": int(v.size), "rays_total": int(total)}
 
 
 def extract_mesh(
@@ -171,6 +238,7 @@ def run_mesh(
     """Density grid -> marching cubes -> PLY at config.out; a JSON summary beside it (FILE.json)."""
     from lightstage.atomic import write_json_atomic
 
+    out = check_out_path(config.out)  # before any work
     t0 = time.perf_counter()
     device = pick_device(config.device)
     if model is None:
@@ -180,14 +248,23 @@ def run_mesh(
     centre, scale = bounds_of(model)
     grid = density_grid(model, config.resolution, config.chunk, device, progress)
     t1 = time.perf_counter()
-    verts, faces, normals = extract_mesh(grid, config.threshold, centre, scale)
+    if config.threshold is None:
+        auto = surface_level(grid)
+        threshold = auto["level"]
+        rule = (
+            f"median density where rays through the grid reach transmittance 1/2 "
+            f"({auto['rays']} of {auto['rays_total']} axis rays)"
+        )
+    else:
+        threshold, rule = float(config.threshold), "given"
+    verts, faces, normals = extract_mesh(grid, threshold, centre, scale)
     t2 = time.perf_counter()
-    out = Path(config.out)
     write_ply(out, verts, faces, normals)
     summary = {
         "ply": str(out),
         "resolution": config.resolution,
-        "threshold": config.threshold,
+        "threshold": threshold,
+        "threshold_rule": rule,
         "device": device,
         "vertices": int(len(verts)),
         "faces": int(len(faces)),

@@ -56,15 +56,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "mesh",
         help="extract a mesh (PLY, world units) from a trained model's density",
         description="Evaluate the density on an N^3 grid over the scene bounds (chunked, GPU when present), "
-        "run marching cubes at --threshold and write a binary PLY in world units (metres).",
+        "run marching cubes at a density level and write a binary PLY in world units (metres). The level is, by "
+        "default, the median density where rays through the grid reach transmittance 1/2 (the field's "
+        "median-depth surface, docs/relighting.md); --threshold gives it by hand.",
     )
     p.add_argument("work", help="work directory")
     p.add_argument("--resolution", type=int, default=256, help="grid points per axis (default 256)")
-    p.add_argument("--threshold", type=float, default=50.0, help="density level of the surface (default 50)")
+    p.add_argument(
+        "--threshold",
+        type=float,
+        default=None,
+        help="density level of the surface in the model's units (default: from the field's transmittance)",
+    )
     p.add_argument("--chunk", type=int, default=262144, help="points per density query")
     p.add_argument("--checkpoint", default=None, help="checkpoint file (default: the latest)")
     p.add_argument("--device", default="auto", help="auto (cuda when available), cpu or cuda")
-    p.add_argument("--out", required=True, help="output .ply file")
+    p.add_argument("--out", required=True, help="output mesh, a .ply file (binary PLY)")
     p.set_defaults(func=_mesh)
 
 
