@@ -41,6 +41,8 @@ class ViewJob:
     path_template: str
     compression: str = "zip"
     attributes: dict = field(default_factory=dict)
+    # (L, 3) relative RGB emission of each light (stage.yaml's lights[i].intensity); None: all 1
+    light_intensities: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -69,6 +71,92 @@ def background_image(cam: PinholeCamera, level: float) -> np.ndarray:
     rr = ((x + 0.5 - cam.width / 2) ** 2 + (y + 0.5 - cam.height / 2) ** 2) / (cam.width / 2) ** 2
     lum = level * (1.0 - 0.35 * np.clip(rr, 0, 1.5))
     return lum[..., None] * np.array([0.9, 0.95, 1.1], np.float32)
+
+
+def _value_noise(rng: np.random.Generator, shape: tuple[int, int], cells: tuple[int, ...]) -> np.ndarray:
+    """(h, w) smooth seeded noise in ~[-1, 1]: octaves of bicubically upsampled random grids (`cells` per
+    image height, coarse first, each half the weight of the one before)."""
+    import cv2
+
+    h, w = shape
+    out = np.zeros(shape, np.float32)
+    weight, norm = 1.0, 0.0
+    for c in cells:
+        gh, gw = max(2, c), max(2, int(round(c * w / h)))
+        grid = rng.standard_normal((gh, gw)).astype(np.float32)
+        out += weight * cv2.resize(grid, (w, h), interpolation=cv2.INTER_CUBIC)
+        norm += weight
+        weight *= 0.5
+    return out / (norm * 0.8)
+
+
+@dataclass
+class Backdrop:
+    """A view's lit background: albedo image and the world points it lies at (fixed to the camera)."""
+
+    albedo: np.ndarray  # (h, w, 3) at `factor` x below the frame
+    points: np.ndarray  # (h * w, 3) world points of the backdrop surface
+    normal: np.ndarray  # (3,) world normal of the backdrop (towards the camera)
+    factor: int
+    level: float  # radiance of albedo 1 lit squarely by one light at the reference distance
+
+
+def make_backdrop(
+    scene: SimScene, cam: PinholeCamera, camera_index: int, seed: int, cutoff: float
+) -> Backdrop:
+    """The cloth backdrop and the stage structure seen by one camera: a plane just inside the light sphere
+    behind the object, facing the camera; its albedo (weave, folds, a few bars of brighter structure) is
+    seeded per camera, so it is the same in every group (it turns with the rig)."""
+    nz = scene.nuisances
+    rng = np.random.default_rng([seed, 21, camera_index])
+    factor = 4
+    h, w = max(2, cam.height // factor), max(2, cam.width // factor)
+    folds = _value_noise(rng, (h, w), (3, 6))
+    weave = _value_noise(rng, (h, w), (40, 80))
+    cloth = np.exp(nz.backdrop_texture * (0.8 * folds + 0.4 * weave))
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    structure = np.zeros((h, w), np.float32)
+    for _ in range(int(rng.integers(2, 5))):  # struts crossing the frame at random angles
+        ang = rng.uniform(0, np.pi)
+        off = rng.uniform(-0.45, 0.45) * np.hypot(h, w)
+        width = rng.uniform(0.008, 0.03) * np.hypot(h, w)
+        dist = (xx - w / 2) * np.cos(ang) + (yy - h / 2) * np.sin(ang) - off
+        structure = np.maximum(structure, np.clip(1.0 - np.abs(dist) / width, 0, 1) ** 0.5)
+    lum = cloth * (1.0 + (nz.structure_gain - 1.0) * structure)
+    tint = np.array([0.85, 0.9, 1.15], np.float32) * (1.0 + 0.05 * rng.standard_normal(3)).astype(np.float32)
+    albedo = lum[..., None] * tint
+    # plane through the far side: the camera's axis meets it 1.35 m behind the centre
+    centre = cam.center
+    fwd = np.asarray(cam.R[2], np.float64)
+    depth = float(np.linalg.norm(centre)) + 1.35
+    u = (np.arange(w) + 0.5) * factor
+    v = (np.arange(h) + 0.5) * factor
+    uu, vv = np.meshgrid(u, v)
+    uv = np.stack([uu.ravel(), vv.ravel()], axis=-1)
+    o, d = pixel_rays(uv, cam.K, cam.R, cam.t)
+    t = depth / np.maximum(d @ fwd, 1e-3)
+    points = o + t[:, None] * d
+    level = cutoff * 2.0 ** (-nz.backdrop_stops)
+    return Backdrop(albedo.astype(np.float32), points, -fwd, factor, level)
+
+
+def backdrop_frame(bd: Backdrop, p: np.ndarray, gain: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W, 3) backdrop radiance under the light at `p`: an LED aimed at the centre (emission ~ cos^2 of the
+    angle off its axis, none behind it), inverse square from the backdrop's typical distance, cosine at the
+    cloth; uneven across the frame by construction. `gain`: the light's relative RGB emission."""
+    import cv2
+
+    to_pt = bd.points - p[None, :]
+    dist = np.linalg.norm(to_pt, axis=-1)
+    dirn = to_pt / dist[:, None]
+    axis = -p / max(float(np.linalg.norm(p)), 1e-9)
+    emit = np.clip(dirn @ axis, 0, None) ** 2
+    incidence = np.clip(-(dirn @ bd.normal), 0, None)
+    ref = 2.4  # m: a light on the camera's side to the backdrop
+    e = (emit * incidence * (ref / np.maximum(dist, 0.3)) ** 2).astype(np.float32)
+    h, w = bd.albedo.shape[:2]
+    small = bd.albedo * (bd.level * e.reshape(h, w))[..., None] * gain.astype(np.float32)
+    return cv2.resize(small, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
 
 
 def bulb_pixels(scene: SimScene, cam: PinholeCamera, p: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -151,7 +239,9 @@ def add_flare(img: np.ndarray, scene: SimScene, cam: PinholeCamera, p: np.ndarra
 
 def add_noise_and_clip(img: np.ndarray, scene: SimScene, cutoff: float, normal: np.ndarray) -> np.ndarray:
     """Poisson-like shot noise + read noise (Gaussian approximation, `normal`: standard normals, one per
-    value), ADC quantisation, then clip to [0, cutoff] as float16 (clipped pixels: smallest half >= cutoff)."""
+    value) on top of the black level, the converter's quantisation (`quantise_bits` of value/cutoff through
+    `quantise_gamma`, else steps of `adc_step`), black level subtracted, then clip to [0, cutoff] as float16;
+    pixels that reached the cutoff store the smallest half >= cutoff (they read as saturated)."""
     nz = scene.nuisances
     f = np.float32
     x = np.maximum(img, 0)
@@ -160,10 +250,29 @@ def add_noise_and_clip(img: np.ndarray, scene: SimScene, cutoff: float, normal: 
     np.sqrt(x, out=x)
     x *= normal.reshape(img.shape)
     x += img
-    x *= f(1.0 / nz.adc_step)
-    np.rint(x, out=x)
-    x *= f(nz.adc_step)
+    clipped = x >= f(cutoff)
+    if nz.black_level:
+        x += f(nz.black_level)
+    if nz.quantise_bits:
+        top = f(2**nz.quantise_bits - 1)
+        np.clip(x, 0.0, f(cutoff), out=x)
+        x *= f(1.0 / cutoff)
+        if nz.quantise_gamma != 1.0:
+            np.power(x, f(1.0 / nz.quantise_gamma), out=x)
+        x *= top
+        np.rint(x, out=x)
+        x *= f(1.0) / top
+        if nz.quantise_gamma != 1.0:
+            np.power(x, f(nz.quantise_gamma), out=x)
+        x *= f(cutoff)
+    else:
+        x *= f(1.0 / nz.adc_step)
+        np.rint(x, out=x)
+        x *= f(nz.adc_step)
+    if nz.black_level:
+        x -= f(nz.black_level)
     np.clip(x, 0.0, f(saturation_value(cutoff)), out=x)
+    x[clipped] = f(saturation_value(cutoff))
     return x.astype(np.float16)
 
 
@@ -179,6 +288,14 @@ def render_view(job: ViewJob) -> ViewRecord:
     )
     bg = background_image(cam, scene.nuisances.background)
     bg[mask] = 0.0
+    backdrop = None
+    if scene.nuisances.backdrop_stops > 0:
+        backdrop = make_backdrop(scene, cam, job.camera_index, job.seed, job.saturation)
+    gains = (
+        np.ones((len(job.light_ids), 3), np.float32)
+        if job.light_intensities is None
+        else np.asarray(job.light_intensities, np.float32).reshape(len(job.light_ids), 3)
+    )
     bulbs: dict[int, int] = {}
     flares: dict[int, float] = {}
     # one seeded pool of standard normals per view; each frame reads a seeded random window of it
@@ -188,16 +305,20 @@ def render_view(job: ViewJob) -> ViewRecord:
         pool = np.random.default_rng([job.seed, 2, job.group_index, job.camera_index]).standard_normal(
             2 * npix, dtype=np.float32
         )
-    for lid, sid, p in zip(job.light_ids, job.light_seed_ids, job.light_positions, strict=True):
-        radiance = shade(scene, hits, p, scene.light_intensity)
+    for lid, sid, p, gain in zip(job.light_ids, job.light_seed_ids, job.light_positions, gains, strict=True):
+        radiance = shade(scene, hits, p, scene.light_intensity * gain)
         if lid in job.clean_lights:
             clean = np.zeros((cam.height * cam.width, 3), np.float32)
             clean[hits.index] = radiance
             path = job.root / "ground_truth" / "clean" / job.group / job.camera / f"{lid:03d}.exr"
             write_exr(path, clean.reshape(cam.height, cam.width, 3), half=False, compression=job.compression)
         img = bg.copy()
+        if backdrop is not None:
+            lit_bg = backdrop_frame(backdrop, p, gain, img.shape[:2])
+            lit_bg[mask] = 0.0  # hidden behind the object and stand
+            img += lit_bg
         img.reshape(-1, 3)[hits.index] += radiance  # the background is 0 under the mask
-        strength = add_flare(img, scene, cam, p, scene.light_intensity)
+        strength = add_flare(img, scene, cam, p, scene.light_intensity * float(gain.mean()))
         if strength > 0:
             flares[lid] = strength
         bulb = bulb_pixels(scene, cam, p)

@@ -11,7 +11,7 @@ where the light enters, and vis the stand's (opaque) occlusion. kd + kt + ks <= 
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -65,6 +65,10 @@ class Material:
     core_rgb: tuple[float, float, float] = (0.35, 0.12, 0.06)
     stand_rgb: tuple[float, float, float] = (0.07, 0.07, 0.08)
     stand_ks: float = 0.03
+    # dark-albedo regions (paint, dirt, dark inclusions at the surface): about this fraction of the surface,
+    # in patches of 1-4 cm, has its albedo multiplied by `dark_albedo` (in the clean ground truth too)
+    dark_fraction: float = 0.0
+    dark_albedo: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -80,6 +84,17 @@ class Nuisances:
     flare_max_angle_deg: float = 14.0  # flare when the light is within this angle of the optical axis ...
     flare_gain: float = 0.25  # ... and behind the object; peak added radiance per unit camera irradiance
     flare_sigma: float = 0.10  # glow width as a fraction of the image width
+    # ---- a real stage's background and sensor (all off by default: the clean, dark render of old; the
+    # `stage` profile of `realistic_nuisances` turns them on)
+    # textured cloth backdrop and stage structure, fixed to the camera (they turn with the rig), lit by the
+    # same lights (LEDs aimed at the centre, so a light lights the backdrop only when it faces it): its mean
+    # radiance where a light faces it squarely, as stops below the cutoff (0: no backdrop)
+    backdrop_stops: float = 0.0
+    backdrop_texture: float = 0.45  # relative spread of the cloth's albedo (weave and folds)
+    structure_gain: float = 2.5  # stage structure (bars) is this much brighter than the cloth
+    black_level: float = 0.0  # sensor offset (stage units) added before and subtracted after quantisation
+    quantise_bits: int = 0  # 8 or 12: quantise value/cutoff to this many bits (0: the adc_step converter)
+    quantise_gamma: float = 1.0  # transfer curve of the quantiser (1: linear; 2.2: an 8-bit sRGB-like source)
 
 
 @dataclass(frozen=True)
@@ -93,6 +108,10 @@ class SimScene:
     nuisances: Nuisances = field(default_factory=Nuisances)
     light_intensity: float = 6.0
     texture_seed: int = 0
+    # per-light RGB emission relative to light_intensity (real LEDs differ by tens of percent and in colour):
+    # log-normal spread of the brightness and of each channel; recorded in stage.yaml as lights[i].intensity
+    led_spread: float = 0.0
+    led_colour_spread: float = 0.0
 
     def bounding_box(self) -> tuple[list[float], list[float]]:
         """World bounds (min, max) of the translucent object (not the stand)."""
@@ -127,6 +146,8 @@ class SimScene:
                 nuisances=Nuisances(**d["nuisances"]),
                 light_intensity=float(d["light_intensity"]),
                 texture_seed=int(d["texture_seed"]),
+                led_spread=float(d.get("led_spread", 0.0)),
+                led_colour_spread=float(d.get("led_colour_spread", 0.0)),
             )
         except (KeyError, TypeError, ValueError) as e:
             raise LightstageError(f"scene description: malformed ({type(e).__name__}: {e})") from None
@@ -140,8 +161,43 @@ def _ellipsoid(d: dict[str, Any]) -> Ellipsoid:
     return Ellipsoid(d["name"], tuple(map(float, d["centre"])), tuple(map(float, d["radii"])))
 
 
-def default_scene(texture_seed: int = 0) -> SimScene:
-    """The candle/soap-like object: a wax body with a head and a thin fin, a dark core, a dark stand."""
+REALISM = ("stage", "clean")
+
+
+def realistic_nuisances() -> Nuisances:
+    """What a real stage adds (docs/simulator.md): a cloth backdrop and structure lit 8-12 stops below the
+    cutoff, a black level with read and shot noise, and a 12-bit converter that quantises the darks."""
+    return Nuisances(
+        read_noise=1.6e-3,  # ~1.5 DN of the 12-bit converter
+        shot_gain=2.2e-4,  # ~20,000 electrons at the cutoff
+        backdrop_stops=10.0,
+        black_level=0.07,  # ~64 DN
+        quantise_bits=12,
+    )
+
+
+def led_intensities(num_lights: int, seed: int, spread: float, colour_spread: float) -> np.ndarray:
+    """(num_lights, 3) seeded relative RGB intensities of the stage's LEDs (all 1 without spread)."""
+    rng = np.random.default_rng([seed, 11])
+    gain = np.exp(spread * rng.standard_normal((num_lights, 1)))
+    colour = np.exp(colour_spread * rng.standard_normal((num_lights, 3)))
+    return np.round(gain * colour, 4)
+
+
+def default_scene(texture_seed: int = 0, realism: str = "clean") -> SimScene:
+    """The candle/soap-like object: a wax body with a head and a thin fin, a dark core, a dark stand.
+    `realism`: "clean" (dark, noise-poor background, equal lights) or "stage" (a real stage's lit backdrop,
+    sensor and LEDs, and dark-albedo patches on the object; see `realistic_nuisances`)."""
+    if realism not in REALISM:
+        raise LightstageError(f"unknown simulator realism {realism!r} (known: {', '.join(REALISM)})")
+    if realism == "stage":
+        return replace(
+            default_scene(texture_seed),
+            material=Material(dark_fraction=0.12),
+            nuisances=realistic_nuisances(),
+            led_spread=0.15,
+            led_colour_spread=0.05,
+        )
     return SimScene(
         body=(
             Ellipsoid("body", (0.0, 0.0, -0.015), (0.07, 0.05, 0.085)),
@@ -264,6 +320,19 @@ def _random_rotation(rng: np.random.Generator) -> np.ndarray:
 def _smoothstep(a: float, b: float, x: np.ndarray) -> np.ndarray:
     t = np.clip((x - a) / (b - a), 0.0, 1.0)
     return t * t * (3 - 2 * t)
+
+
+def dark_patches(tex: SolidTexture, p: np.ndarray, fraction: float) -> np.ndarray:
+    """(N,) weight in [0, 1] of the dark-albedo regions: blobs of 1-4 cm covering about `fraction` of the
+    surface (a coarse octave of the blot field, in a region of its grid the flecks do not use)."""
+    if fraction <= 0:
+        return np.zeros(len(p), np.float32)
+    v = tex.fbm(2, p * 0.37 + 3.1, (0.03, 0.015))
+    # fbm of two octaves is roughly normal around 0.5 with sd ~0.09: the upper `fraction` tail
+    from scipy.special import ndtri
+
+    t = 0.5 + 0.09 * float(ndtri(1.0 - min(fraction, 0.99)))
+    return _smoothstep(t - 0.01, t + 0.01, v)
 
 
 def object_albedo(tex: SolidTexture, p: np.ndarray, base: np.ndarray) -> np.ndarray:
@@ -445,6 +514,9 @@ def cast_view(
         )
         vis = vis.astype(np.float32)[:, None]
         albedo[obj] = (1.0 - vis) * surf + vis * core
+        if mat.dark_fraction > 0:
+            dark = dark_patches(tex, pos[obj], mat.dark_fraction)[:, None]
+            albedo[obj] *= 1.0 - (1.0 - np.float32(mat.dark_albedo)) * dark
     st = kind == KIND_STAND
     if st.any():
         albedo[st] = stand_albedo(tex, pos[st], np.asarray(mat.stand_rgb, np.float32))

@@ -41,8 +41,8 @@ from lightstage.capture.sim_probe import (
     run_probe_job,
 )
 from lightstage.capture.sim_render import ViewJob, render_view, run_view_job
-from lightstage.capture.sim_scene import SimScene, cast_view, default_scene, render_hits
-from lightstage.capture.stage import LightSpec, Stage
+from lightstage.capture.sim_scene import SimScene, cast_view, default_scene, led_intensities, render_hits
+from lightstage.capture.stage import Stage
 from lightstage.errors import LightstageError
 from lightstage.rig import TurntableAxis, camera_pose_in_world, light_position_in_world
 
@@ -63,6 +63,7 @@ class SimPreset:
     clean_lights: int = 4  # lights (spread over the sphere) rendered clean for every view
     requires_selection: bool = False  # `paper`: too big to simulate whole
     camera_distance: float | None = None  # metres from the centre; None: on the light sphere (1.5 m)
+    realism: str = "clean"  # "stage": a real stage's lit backdrop, sensor, LEDs (sim_scene.default_scene)
 
     @property
     def num_frames(self) -> int:
@@ -71,7 +72,7 @@ class SimPreset:
 
 SIM_PRESETS: dict[str, SimPreset] = {
     "tiny": SimPreset("tiny", 9, 4, 12, 256, 172, clean_lights=3, camera_distance=1.1),
-    "small": SimPreset("small", 9, 20, 32, 768, 512, clean_lights=4, camera_distance=1.1),
+    "small": SimPreset("small", 9, 20, 32, 768, 512, clean_lights=4, camera_distance=1.1, realism="stage"),
     "paper": SimPreset("paper", 9, 20, 331, *PAPER_RESOLUTION, clean_lights=2, requires_selection=True),
 }
 
@@ -167,7 +168,7 @@ def _parse_indices(
 
 def _select_stage(full: Stage, groups: list[int], cameras: list[int], lights: list[int]) -> Stage:
     """A stage restricted to the selected groups/cameras/lights (lights renumbered 0..k-1, as stage.yaml needs)."""
-    sel_lights = tuple(LightSpec(k, full.lights[i].position) for k, i in enumerate(lights))
+    sel_lights = tuple(replace(full.lights[i], index=k) for k, i in enumerate(lights))
     return replace(
         full,
         cameras=tuple(full.cameras[i] for i in cameras),
@@ -182,6 +183,17 @@ def clean_light_choice(num_lights: int, count: int) -> list[int]:
     return sorted({int(round(x)) for x in np.linspace(num_lights * 0.15, num_lights - 1, count)})
 
 
+# Every light of the last CLEAN_TEST_CAMERAS cameras is rendered clean too: they hold the test views of the
+# `paper` protocol (the paper's cameras 19-20; the last max(1, round(10%)) of the cameras, see dataset.split), so
+# evaluation can score a perfect prediction against the same test frames (the ceiling).
+CLEAN_TEST_CAMERAS = 2
+
+
+def clean_camera_choice(camera_ids: tuple[str, ...] | list[str]) -> list[str]:
+    """Cameras with a clean GT render of every light: the last CLEAN_TEST_CAMERAS of the capture's cameras."""
+    return list(camera_ids)[-CLEAN_TEST_CAMERAS:]
+
+
 # ---- the entry point ---------------------------------------------------------------------------------------
 def simulate_capture(
     out: Path,
@@ -193,11 +205,13 @@ def simulate_capture(
     workers: int | None = None,
     progress: bool = True,
     probe: bool = True,
+    realism: str | None = None,
 ) -> Path:
     """Simulate a raw capture with ground truth into `out` (created; must be empty or absent); returns `out`.
 
     `probe`: also write the mirror-ball light-probe frames (probe/, see capture.probe) and
-    ground_truth/probe.json, after the capture frames."""
+    ground_truth/probe.json, after the capture frames. `realism`: "stage" or "clean" (default: the preset's;
+    see sim_scene.default_scene)."""
     if preset not in SIM_PRESETS:
         raise LightstageError(f"unknown simulator preset {preset!r} (known: {', '.join(SIM_PRESETS)})")
     if not isinstance(seed, int) or seed < 0:
@@ -224,9 +238,13 @@ def simulate_capture(
     csel = _parse_indices(cameras, len(full.cameras), "cameras", full.camera_ids)
     lsel = _parse_indices(lights, len(full.lights), "lights")
     truth_full = true_geometry(full, seed)
+    realism = realism or p.realism
+    scene = default_scene(texture_seed=seed, realism=realism)
+    if scene.led_spread or scene.led_colour_spread:  # measured LED intensities go into stage.yaml
+        leds = led_intensities(len(full.lights), seed, scene.led_spread, scene.led_colour_spread)
+        full = replace(full, lights=tuple(replace(lt, intensity=tuple(leds[lt.index])) for lt in full.lights))
     stage = _select_stage(full, gsel, csel, lsel)
     truth = replace(truth_full, lights_rig=truth_full.lights_rig[lsel])
-    scene = default_scene(texture_seed=seed)
 
     start = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
@@ -235,6 +253,7 @@ def simulate_capture(
         "simulator": "lightstage.capture.simulate",
         "preset": preset,
         "seed": seed,
+        "realism": realism,
         "ground_truth": GROUND_TRUTH,
         "source_light_indices": lsel if len(lsel) != len(full.lights) else "all",
     }
@@ -242,8 +261,9 @@ def simulate_capture(
         CaptureInfo(DEFAULT_PATH_TEMPLATE, 1.0, "sim-translucent-wax", notes), out / CAPTURE_FILE
     )
     clean = clean_light_choice(len(stage.lights), p.clean_lights)
+    clean_cams = clean_camera_choice(stage.camera_ids)
     gt = out / GROUND_TRUTH
-    _write_ground_truth(gt, stage, truth, scene, clean, seed, preset)
+    _write_ground_truth(gt, stage, truth, scene, clean, seed, preset, clean_cams)
 
     jobs = [
         ViewJob(
@@ -256,12 +276,13 @@ def simulate_capture(
             light_positions=truth.light_positions(full.groups[gi].name),
             light_ids=tuple(range(len(lsel))),
             light_seed_ids=tuple(lsel),
-            clean_lights=tuple(clean),
+            clean_lights=tuple(range(len(lsel))) if full.cameras[ci].id in clean_cams else tuple(clean),
             scene=scene,
             saturation=stage.saturation,
             seed=seed,
             path_template=DEFAULT_PATH_TEMPLATE,
             attributes={"lightstage_simulator": f"{preset} seed {seed}"},
+            light_intensities=stage.light_intensities(),
         )
         for gi in gsel
         for ci in csel
@@ -379,7 +400,14 @@ def _run_jobs(
 
 
 def _write_ground_truth(
-    gt: Path, stage: Stage, truth: TrueGeometry, scene: SimScene, clean: list[int], seed: int, preset: str
+    gt: Path,
+    stage: Stage,
+    truth: TrueGeometry,
+    scene: SimScene,
+    clean: list[int],
+    seed: int,
+    preset: str,
+    clean_cameras: list[str] | tuple[str, ...] = (),
 ) -> None:
     """geometry.json (true cameras, lights, axis, yaws), scene.json, clean.json."""
     views = {}
@@ -404,6 +432,8 @@ def _write_ground_truth(
         {
             "lights": clean,
             "views": "all",
+            # and every light of these cameras in every group (the test views: evaluation's ceiling)
+            "every_light_cameras": list(clean_cameras),
             "path_template": "ground_truth/clean/{group}/{camera}/{light:03d}.exr",
             "content": "noise-free, unclipped float32 radiance of object + stand; background, bulbs, flare = 0",
         },

@@ -21,6 +21,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--cameras", help="camera ids or indices, e.g. cam00,cam03 or 0-4")
     p.add_argument("--lights", help="light indices, e.g. 0,10,20-25 or 0-31:2 (every other)")
     p.add_argument("--workers", type=int, help="worker processes (default: available cores)")
+    p.add_argument(
+        "--realism",
+        choices=("stage", "clean"),
+        help="stage: a real stage's lit cloth backdrop, sensor noise and black level, 12-bit darks, unequal "
+        "LEDs, dark-albedo patches; clean: the old dark, clean render (default: the preset's; small: stage)",
+    )
     p.add_argument("--no-probe", action="store_true", help="skip the mirror-ball light-probe frames (probe/)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_simulate)
@@ -42,5 +48,6 @@ def _simulate(args: argparse.Namespace) -> int:
         workers=args.workers,
         progress=not args.quiet,
         probe=not args.no_probe,
+        realism=args.realism,
     )
     return 0

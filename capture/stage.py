@@ -42,10 +42,19 @@ class CameraSpec:
 
 @dataclass(frozen=True)
 class LightSpec:
-    """One white point light: 0-based index and rig-frame position in metres."""
+    """One light: 0-based index, rig-frame position in metres, relative RGB intensity.
+
+    `intensity`: the light's emission relative to the stage's reference light, per channel (real LEDs differ
+    by tens of percent and in colour; measure them, e.g. on a white target). Preprocess divides every
+    processed frame by its light's intensity, so downstream stages see equal white lights.
+    `directional`: a distant light known only by its direction (datasets of distant lights); `position` is
+    then the point on the light sphere in that direction (sphere_radius x the unit direction), so the paper's
+    light direction normalize(p - centre) is the given direction."""
 
     index: int
     position: np.ndarray  # 3
+    intensity: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    directional: bool = False
 
 
 @dataclass(frozen=True)
@@ -101,6 +110,15 @@ class Stage:
         """(L, 3) nominal rig-frame light positions, in index order."""
         return np.stack([lt.position for lt in self.lights])
 
+    def light_intensities(self) -> np.ndarray:
+        """(L, 3) relative RGB intensities, in index order (all 1 unless stage.yaml gives them)."""
+        return np.array([lt.intensity for lt in self.lights], np.float64).reshape(len(self.lights), 3)
+
+    @property
+    def equal_lights(self) -> bool:
+        """Every light has intensity (1, 1, 1)."""
+        return bool(np.all(self.light_intensities() == 1.0))
+
     # ---- nominal world geometry ------------------------------------------------------------------
     def view_camera(self, group: str, camera_id: str) -> PinholeCamera:
         """Nominal world-frame camera of a view (group, camera) at raw resolution."""
@@ -139,15 +157,24 @@ class Stage:
             },
             "groups": [{"name": g.name, "yaw_deg": float(g.yaw_deg)} for g in self.groups],
             "cameras": [cam(c) for c in self.cameras],
-            "lights": [
-                {"index": int(lt.index), "position": np.asarray(lt.position, float).tolist()}
-                for lt in self.lights
-            ],
+            "lights": [_light_dict(lt, self.sphere_radius) for lt in self.lights],
         }
 
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write as YAML (atomically)."""
         write_text_atomic(path, yaml.safe_dump(self.to_dict(), sort_keys=False, default_flow_style=None))
+
+
+def _light_dict(lt: LightSpec, sphere_radius: float) -> dict[str, Any]:
+    d: dict[str, Any] = {"index": int(lt.index)}
+    if lt.directional:
+        p = np.asarray(lt.position, float)
+        d["direction"] = (p / np.linalg.norm(p)).tolist()
+    else:
+        d["position"] = np.asarray(lt.position, float).tolist()
+    if tuple(lt.intensity) != (1.0, 1.0, 1.0):
+        d["intensity"] = [float(x) for x in lt.intensity]
+    return d
 
 
 # ---- loading and validation ----------------------------------------------------------------------
@@ -220,10 +247,27 @@ def stage_from_dict(data: Any, source: str = "stage.yaml") -> Stage:
                 distortion=r.array(c, "distortion", where, (5,), None),
             )
         )
+    sphere_radius = r.get(data, "sphere_radius", "", float, 1.5)
     lights = []
     for i, lt in enumerate(r.get(data, "lights", "", list)):
         where = f"lights[{i}]"
-        lights.append(LightSpec(r.get(lt, "index", where, int), r.array(lt, "position", where, (3,))))
+        index = r.get(lt, "index", where, int)
+        if isinstance(lt, dict) and "direction" in lt:
+            if "position" in lt:
+                raise r.fail(where, "give either position (a point light) or direction (a distant light)")
+            direction = r.array(lt, "direction", where, (3,))
+            norm = float(np.linalg.norm(direction))
+            if not norm > 0:
+                raise r.fail(where + ".direction", "must be a non-zero vector")
+            position, directional = direction / norm * sphere_radius, True
+        else:
+            position, directional = r.array(lt, "position", where, (3,)), False
+        intensity = r.array(lt, "intensity", where, (3,), None)
+        if intensity is None:
+            intensity = np.ones(3)
+        if not np.all(intensity > 0):
+            raise r.fail(where + ".intensity", f"must be positive (relative RGB), got {intensity.tolist()}")
+        lights.append(LightSpec(index, position, tuple(float(x) for x in intensity), directional))
     groups = []
     for i, g in enumerate(r.get(data, "groups", "", list)):
         where = f"groups[{i}]"
@@ -236,7 +280,7 @@ def stage_from_dict(data: Any, source: str = "stage.yaml") -> Stage:
         width=r.get(res, "width", "resolution", int),
         height=r.get(res, "height", "resolution", int),
         saturation=r.get(data, "saturation", "", float),
-        sphere_radius=r.get(data, "sphere_radius", "", float, 1.5),
+        sphere_radius=sphere_radius,
         centre_height=r.get(data, "centre_height", "", float, 1.1),
         units=r.get(data, "units", "", str, "m"),
         axis=TurntableAxis(
@@ -284,7 +328,9 @@ def validate_stage(stage: Stage, source: str = "stage") -> None:
         raise r.fail("turntable_axis.direction", "must be a unit vector")
     floor = -stage.centre_height
     for lt in stage.lights:
-        if lt.position[2] < floor - 1e-9:
+        if len(lt.intensity) != 3 or not all(x > 0 for x in lt.intensity):
+            raise r.fail(f"lights[{lt.index}].intensity", f"must be 3 positive numbers, got {lt.intensity}")
+        if not lt.directional and lt.position[2] < floor - 1e-9:
             raise r.fail(
                 f"lights[{lt.index}].position",
                 f"z = {lt.position[2]:.4f} m is below the floor (z = {floor:.4f} m)",

@@ -14,8 +14,9 @@ from lightstage.errors import LightstageError
 
 @dataclass(frozen=True)
 class PreprocessConfig:
-    """Parameters of downscaling, per-view statistics, segmentation and flare scoring (defaults are tuned on
-    the simulator and sized for the reference stage)."""
+    """Parameters of downscaling, per-view statistics, segmentation and flare scoring. Segmentation's
+    thresholds are measured per view (background level and spread, object level); the parameters below say
+    how far above the measured background a pixel must be, never an absolute level (docs/preprocess.md)."""
 
     # ---- downscale / output frames
     # compression of the processed frames' colour part: none | rle | piz | zip (lossless only; the saturation
@@ -27,11 +28,23 @@ class PreprocessConfig:
     chunk_lights: int = 32  # lights per task: a chunk's partial statistics merge with the others in a tree
     window: int = 0  # tasks in flight with a dask client (0: 4 per worker thread)
     # ---- segmentation (on the processed resolution)
-    lit_ratio: float = (
-        4.0  # a pixel is lit in a frame when brighter than lit_ratio x the frame's dark level ...
+    segmentation: str = "adaptive"  # adaptive | lit_fraction (the old fixed-fraction rule)
+    # adaptive: a pixel's lit levels are the brightnesses these fractions of its frames exceed ...
+    brightness_quantiles: str = "0.1,0.25,0.5"
+    min_quantile_frames: float = 2.0  # ... and at least this many frames (a flare is in one, rarely two)
+    border_width: float = (
+        0.03  # ... the background is first measured in a border ring this wide (x short side)
     )
-    lit_floor: float = 2.0**-13  # ... + lit_floor x the stage's saturation cutoff
-    min_lit_fraction: float = 0.12  # foreground: lit in at least this fraction of the unsaturated frames
+    background_sigmas: float = 3.0  # foreground: above the local background by this many local spreads ...
+    contrast_fraction: float = 0.3  # ... and by this fraction of the way (in stops) to the object level ...
+    min_contrast_stops: float = 1.0  # ... and by at least this many stops
+    background_blur: float = 0.1  # smoothing of the local background map (x the frame diagonal)
+    # lit_fraction (and the per-frame `lit` statistic): a pixel is lit in a frame when brighter than
+    # lit_ratio x the frame's dark level + lit_floor x the stage's saturation cutoff, foreground when lit in
+    # at least min_lit_fraction of its unsaturated frames (fixed numbers: tuned on the old clean simulator)
+    lit_ratio: float = 4.0
+    lit_floor: float = 2.0**-13
+    min_lit_fraction: float = 0.12
     max_saturated_fraction: float = 0.5  # foreground pixels are mostly unsaturated
     open_radius: int = 1  # morphological opening radius (pixels)
     close_radius: int = 2  # morphological closing radius (pixels)
@@ -39,6 +52,11 @@ class PreprocessConfig:
     centre_weight: float = 0.5  # ... scored by area, discounted by distance from the image centre
     fill_holes: bool = True
     band_width: int = 6  # zone map: pixels on each side of the silhouette that form the band
+    # ---- sanity flags of a view's mask (view.json "flags", the report, the console, overlay.png)
+    flag_border_fraction: float = 0.5  # the mask covers more than this fraction of the frame's perimeter
+    flag_min_fraction: float = 0.002  # foreground fraction below this ...
+    flag_max_fraction: float = 0.6  # ... or above this
+    flag_group_ratio: float = 2.5  # foreground fraction this many times off the median of its group's views
     # ---- flare / outlier frames
     flare_dilate: int = 8  # mask dilation (pixels) before measuring energy outside it
     flare_thumb: int = 8  # per-frame thumbnails for flare scoring are this many times smaller
@@ -85,6 +103,14 @@ class PreprocessConfig:
         def bad(key: str, what: str) -> LightstageError:
             return LightstageError(f"{source}.{key}: {what}, got {getattr(self, key)!r}")
 
+        try:
+            qs = self.quantiles()
+        except ValueError:
+            qs = ()
+        if not qs or not all(0 < q < 1 for q in qs):
+            raise bad("brightness_quantiles", "expected comma-separated fractions in (0, 1)")
+        if self.segmentation not in ("adaptive", "lit_fraction"):
+            raise bad("segmentation", "expected adaptive or lit_fraction")
         if self.compression not in COMPRESSIONS:
             raise bad("compression", f"expected one of {', '.join(COMPRESSIONS)}")
         if self.band_rows < 4 or self.band_rows % 4:
@@ -97,7 +123,18 @@ class PreprocessConfig:
         for key in ("window", "sfm_max_side", "open_radius", "close_radius", "band_width", "flare_dilate"):
             if getattr(self, key) < 0:
                 raise bad(key, "expected an integer >= 0")
-        for key in ("lit_ratio", "lit_floor", "centre_weight", "flare_threshold", "exposure"):
+        for key in (
+            "lit_ratio",
+            "lit_floor",
+            "centre_weight",
+            "flare_threshold",
+            "exposure",
+            "background_sigmas",
+            "min_contrast_stops",
+            "background_blur",
+            "flag_group_ratio",
+            "min_quantile_frames",
+        ):
             if not getattr(self, key) >= 0:
                 raise bad(key, "expected a number >= 0")
         for key in (
@@ -105,11 +142,20 @@ class PreprocessConfig:
             "max_saturated_fraction",
             "min_component_fraction",
             "max_lost_fraction",
+            "border_width",
+            "contrast_fraction",
+            "flag_border_fraction",
+            "flag_min_fraction",
+            "flag_max_fraction",
         ):
             if not 0 <= getattr(self, key) <= 1:
                 raise bad(key, "expected a fraction in [0, 1]")
         if not 0 < self.exposure_percentile <= 100:
             raise bad("exposure_percentile", "expected a percentile in (0, 100]")
+
+    def quantiles(self) -> tuple[float, ...]:
+        """brightness_quantiles as numbers."""
+        return tuple(float(x) for x in self.brightness_quantiles.split(",") if x.strip())
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -126,7 +172,7 @@ class PreprocessConfig:
 
 
 # Bumped when the statistics or segmentation change meaning, so stale view outputs are recomputed.
-STATS_FORMAT = 2  # 2: frame thumbnails cover whole blocks only
+STATS_FORMAT = 3  # 2: frame thumbnails cover whole blocks only; 3: brightness ladder, frames / LED intensity
 
 
 def _hash(obj: Any) -> str:

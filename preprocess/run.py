@@ -52,6 +52,8 @@ class ChunkJob:
     cutoff: float
     exposure_scale: float
     config: PreprocessConfig
+    # per light of the chunk, its relative RGB intensity (stage.yaml); processed frames are divided by it
+    intensities: tuple[tuple[float, float, float], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -106,6 +108,9 @@ class ViewRecord:
     iou: float | None = None
     seconds: float = 0.0
     chunks: list[dict[str, Any]] = field(default_factory=list)
+    # why the mask looks wrong (segment.mask_flags; group_flags added once every view is done); empty: fine
+    flags: list[str] = field(default_factory=list)
+    segmentation: dict[str, Any] = field(default_factory=dict)  # measured levels (segment.segment_view)
 
     @property
     def view(self) -> ViewId:
@@ -200,12 +205,13 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
         work.frame(FrameId(job.group, job.camera, 0)).parent, [f"{lt:03d}" for lt in job.lights]
     )
     _remove_stale_temps(partial.parent, [partial.stem])
-    acc = StatsAccumulator(h, w)
+    acc = StatsAccumulator(h, w, job.cutoff)
     rounder = HalfRounder(h, w)
     thumbs, sthumbs, taus = [], [], []
     problems: list[tuple[int, str]] = []
     processed = reused = 0
-    for light, raw in zip(job.lights, job.raw_paths, strict=True):
+    gains = job.intensities or ((1.0, 1.0, 1.0),) * len(job.lights)
+    for light, raw, gain in zip(job.lights, job.raw_paths, gains, strict=True):
         out = work.frame(FrameId(job.group, job.camera, light))
         try:
             if processed_ok(out, (w, h)):
@@ -217,6 +223,8 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
                 rgb32, sat = small.rgb, small.saturated
                 if job.exposure_scale != 1.0:
                     rgb32 *= np.float32(job.exposure_scale)
+                if tuple(gain) != (1.0, 1.0, 1.0):  # equal white lights downstream
+                    rgb32 *= (1.0 / np.asarray(gain, np.float64)).astype(np.float32)
                 _check_finite(rgb32, raw)
                 write_processed(
                     out, rounder(rgb32), sat, cfg.compression
@@ -282,7 +290,7 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
     from lightstage.capture.frames import write_exr, write_image
     from lightstage.preprocess.flare import flare_scores
     from lightstage.preprocess.processed import to_half
-    from lightstage.preprocess.segment import iou, segment, zone_map
+    from lightstage.preprocess.segment import iou, mask_flags, segment_view, zone_map
     from lightstage.preprocess.sfm_image import upsample_mask
     from lightstage.preprocess.stats import ViewStats, empty_stats, merge_tree
 
@@ -319,7 +327,7 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
         raise LightstageError(
             f"{view}: statistics are {stats.mean.shape[1]}x{stats.mean.shape[0]}, expected {w}x{h}"
         )
-    mask = segment(stats, cfg)
+    mask, seg_info = segment_view(stats, cfg)
     zones = zone_map(mask, cfg.band_width)
     lum_thumbs = np.concatenate(thumbs) if thumbs else np.zeros((0, 1, 1), np.float32)
     sat_thumbs = np.concatenate(sthumbs) if sthumbs else np.zeros((0, 1, 1), np.float32)
@@ -368,6 +376,8 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
         iou=gt_iou,
         seconds=time.perf_counter() - start,
         chunks=[asdict(r) for r in chunk_records or []],
+        flags=mask_flags(mask, cfg),
+        segmentation=seg_info,
     )
     write_json_atomic(vdir / VIEW_RECORD, asdict(record))
     for p in paths:
@@ -481,6 +491,7 @@ def run_preprocess(
         )
     size = (stage.width // DOWNSCALE, stage.height // DOWNSCALE)
     lights = [lt.index for lt in stage.lights]
+    intensities = {lt.index: tuple(float(x) for x in lt.intensity) for lt in stage.lights}
     view_jobs: list[ViewJob] = []
     chunk_jobs: dict[ViewId, list[ChunkJob]] = {}
     for view in capture.views():
@@ -515,6 +526,7 @@ def run_preprocess(
                 stage.saturation,
                 capture.info.exposure_scale,
                 config,
+                tuple(intensities[lt] for lt in c),
             )
             for i, c in enumerate(chunks)
         ]
@@ -536,6 +548,7 @@ def run_preprocess(
     else:
         _run_dask(client, todo, chunk_jobs, records, chunk_results, errors, config, progress)
     t_views = time.perf_counter() - t_frames
+    _add_group_flags(work, records, config)
     t_prev = time.perf_counter()
     exposure = write_previews(
         work, [v for v in view_jobs if ViewId(v.group, v.camera) in records], records, config
@@ -562,11 +575,42 @@ def run_preprocess(
     summary = {k: report[k] for k in ("counts", "timings")}
     if "segmentation" in report:
         summary["segmentation"] = {k: v for k, v in report["segmentation"].items() if k != "iou"}
+    if report["warnings"]:
+        import sys
+
+        shown = report["warnings"][:20]
+        more = len(report["warnings"]) - len(shown)
+        for line in shown:
+            print(f"preprocess: warning: {line}", file=sys.stderr)
+        if more:
+            print(
+                f"preprocess: warning: ... and {more} more (see {work.report('preprocess')})", file=sys.stderr
+            )
+        summary["warnings"] = len(report["warnings"])
     summary["rejected"] = len(report["rejected_frames"])
     summary["problems"] = len(report["problems"])
     summary["errors"] = len(errors)
     summary["report"] = str(work.report("preprocess"))
     return summary
+
+
+def _add_group_flags(work: WorkDir, records: dict[ViewId, ViewRecord], config: PreprocessConfig) -> None:
+    """Flag views whose foreground fraction disagrees strongly with the other views of their group (rewrites
+    their view.json; the flag is dropped again when a rerun finds them consistent)."""
+    from lightstage.preprocess.segment import group_flags
+
+    by_group: dict[str, dict[str, float]] = {}
+    for v, rec in records.items():
+        by_group.setdefault(v.group, {})[v.camera] = rec.foreground_fraction
+    for group, fractions in by_group.items():
+        odd = group_flags(fractions, config.flag_group_ratio)
+        for camera in fractions:
+            rec = records[ViewId(group, camera)]
+            own = [f for f in rec.flags if not f.startswith("foreground fraction ")]
+            flags = own + ([odd[camera]] if camera in odd else [])
+            if flags != rec.flags:
+                rec.flags = flags
+                write_json_atomic(work.view_dir(rec.view) / VIEW_RECORD, asdict(rec))
 
 
 def _open_pointed_capture(work: WorkDir) -> Capture:
@@ -726,6 +770,7 @@ def write_previews(
             "sfm_exposure": sfm_exposure,
             "view_key": rec.key,
             "lights": len(rec.lights),
+            "flags": rec.flags,
         }
         outputs = (
             work.wellit(view),
@@ -739,7 +784,7 @@ def write_previews(
         img = tonemap_u8(read_exr(work.mean_image(view)).astype(np.float32), exposure)
         mask = read_mask(work.mask(view))
         write_image(outputs[0], img)
-        write_image(outputs[1], overlay(img, mask, zone_map(mask, config.band_width)))
+        write_image(outputs[1], overlay(img, mask, zone_map(mask, config.band_width), rec.flags))
         sfm = read_exr(work.sfm_hdr(view)).astype(np.float32)
         write_image(outputs[2], tonemap_u8(sfm, sfm_exposure))
         write_image(outputs[3], upsample_mask(mask, (sfm.shape[1], sfm.shape[0])))
@@ -771,6 +816,7 @@ def build_report(
     """The stage report: counts, problems, flare scores, rejects, flagged views, segmentation IoU."""
     n_lights = len(capture.stage.lights)
     problems, rejected, flagged, scores, ious = [], [], [], {}, {}
+    masks_flagged: list[dict[str, Any]] = []
     for job in jobs:
         view = ViewId(job.group, job.camera)
         rec = records.get(view)
@@ -791,6 +837,14 @@ def build_report(
                     "fraction": round(lost / n_lights, 4),
                 }
             )
+        if rec.flags:
+            masks_flagged.append(
+                {
+                    "view": str(view),
+                    "foreground_fraction": round(rec.foreground_fraction, 4),
+                    "reasons": rec.flags,
+                }
+            )
         if rec.iou is not None:
             ious[str(view)] = round(rec.iou, 5)
     counts = {
@@ -806,6 +860,7 @@ def build_report(
         "bad": len(problems),
         "rejected": len(rejected),
         "flagged_views": len(flagged),
+        "flagged_masks": len(masks_flagged),
     }
     report: dict[str, Any] = {
         "stage": "preprocess",
@@ -819,8 +874,10 @@ def build_report(
         "problems": problems,
         "rejected_frames": rejected,
         "flagged_views": flagged,
+        "flagged_masks": masks_flagged,
         "flare": {"threshold": config.flare_threshold, "scores": scores},
-        "warnings": [f"view {f['view']} lost {f['lost']} of {n_lights} frames" for f in flagged],
+        "warnings": [f"view {f['view']} lost {f['lost']} of {n_lights} frames" for f in flagged]
+        + [f"view {f['view']}: suspicious mask: {'; '.join(f['reasons'])}" for f in masks_flagged],
         "errors": errors,
     }
     if ious:

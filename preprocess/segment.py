@@ -1,18 +1,31 @@
-"""Foreground segmentation of a view from its OLAT statistics (the paper's heuristics), zone map and overlay.
+"""Foreground segmentation of a view from its OLAT statistics (the paper's heuristics), sanity flags, zone map
+and overlay.
 
-1. Coarse mask: the object changes with the light direction, so a foreground pixel is lit (above the
-   frame's dark level) in a sizeable fraction of the unsaturated frames; the background stays dark apart
-   from noise, saturated bulbs (excluded per frame) and flares (a few frames), so its lit fraction is small.
-2. Clean-up with OpenCV: opening/closing, connected components (keep the large ones near the image centre),
+The default ("adaptive") sets every threshold from the view's own statistics (docs/preprocess.md):
+1. Per pixel, its lit levels: the brightness (stops below the cutoff) that 10%, 25% and 50% of its
+   unsaturated frames exceed, read from the brightness ladder (preprocess/stats.py). A quantile over the OLAT
+   stack ignores the few frames with a flare or a shadow, and saturated frames (bulbs) are left out; each
+   quantile is compared with the background's own distribution of that quantile, and a pixel that stands out
+   in any of them is foreground (the shadow side of an object stands out in its brightest frames only).
+2. The background's level and spread are measured where the object is not: first in a ring along the frame
+   border, then (twice) everywhere outside the dilated mask, smoothed into a local background map (the
+   background is lit unevenly). The object's level is the median of what stands clearly above it.
+3. A pixel is foreground when its lit level exceeds the local background by `background_sigmas` local
+   spreads and by `contrast_fraction` of the way (in stops) to the object level, and is mostly unsaturated.
+4. Clean-up with OpenCV: opening/closing, connected components (keep the large ones near the image centre),
    hole filling.
-3. Sub-pixel boundary: a silhouette pixel mixes object and background linearly, so near the coarse boundary
-   a pixel is foreground when its mean (unsaturated) luminance is at least halfway between the local
-   object level and the local background level (normalised Gaussian averages of the inside and outside).
+5. Sub-pixel boundary: a silhouette pixel mixes object and background linearly, so near the coarse boundary a
+   pixel is foreground when its mean (unsaturated) luminance is at least halfway between the object level
+   just inside the rim (a ring 1-2 pixels in, not the brighter interior: the rim is darkened by lights near the
+   view axis) and the local background level outside.
+The old rule ("lit_fraction": lit above a per-frame dark level in a fixed fraction of the frames) is kept as
+an option. `mask_flags` says when a mask looks wrong (touching most of the border, implausible size).
 """
 
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import numpy as np
 
@@ -65,9 +78,13 @@ def _normalised_blur(values: np.ndarray, weights: np.ndarray, sigma: float) -> n
     return num / np.maximum(den, 1e-6)
 
 
-def refine_boundary(mask: np.ndarray, level: np.ndarray, radius: int = 1, sigma: float = 1.5) -> np.ndarray:
+def refine_boundary(
+    mask: np.ndarray, level: np.ndarray, radius: int = 1, sigma: float = 1.5, rim: int = 0
+) -> np.ndarray:
     """Decide the pixels within `radius` of the mask boundary by linear unmixing of `level` (a quantity
-    linear in coverage, e.g. mean luminance): foreground iff level >= (inside + outside) / 2 locally."""
+    linear in coverage, e.g. mean luminance): foreground iff level >= (inside + outside) / 2 locally.
+    `rim` > 0: the inside level comes from the ring of that width just inside the band (the rim), not the
+    whole interior."""
     import cv2
 
     m8 = mask.astype(np.uint8)
@@ -75,7 +92,11 @@ def refine_boundary(mask: np.ndarray, level: np.ndarray, radius: int = 1, sigma:
     outer = ~cv2.dilate(m8, _disk(radius)).astype(bool)
     if not inner.any() or not outer.any():
         return mask.astype(bool)
-    inside = _normalised_blur(level, inner, sigma)
+    source = inner
+    if rim > 0:
+        ring = inner & ~cv2.erode(m8, _disk(radius + rim)).astype(bool)
+        source = ring if ring.any() else inner
+    inside = _normalised_blur(level, source, sigma)
     outside = _normalised_blur(level, outer, sigma)
     band = ~inner & ~outer
     out = mask.astype(bool).copy()
@@ -83,12 +104,114 @@ def refine_boundary(mask: np.ndarray, level: np.ndarray, radius: int = 1, sigma:
     return out
 
 
+def border_ring(shape: tuple[int, int], fraction: float) -> np.ndarray:
+    """(h, w) bool ring along the frame border, `fraction` of the short side wide (at least 2 pixels)."""
+    h, w = shape
+    b = max(2, int(round(fraction * min(h, w))))
+    ring = np.ones(shape, bool)
+    ring[b : h - b, b : w - b] = False
+    return ring
+
+
+def _robust(values: np.ndarray) -> tuple[float, float]:
+    """(median, 1.4826 x median absolute deviation) of a 1-D array."""
+    med = float(np.median(values))
+    return med, 1.4826 * float(np.median(np.abs(values - med)))
+
+
 def segment(stats: ViewStats, config: PreprocessConfig) -> np.ndarray:
     """(h, w) bool foreground mask from a view's statistics."""
+    return segment_view(stats, config)[0]
+
+
+def segment_view(stats: ViewStats, config: PreprocessConfig) -> tuple[np.ndarray, dict[str, Any]]:
+    """(mask, info): the (h, w) bool foreground mask and what the thresholds were measured as (stops below the
+    cutoff: background level and spread in the border ring, object level, threshold at the border)."""
+    if stats.count == 0:
+        return np.zeros(stats.peak.shape, bool), {}
+    if config.segmentation == "lit_fraction" or len(stats.ladder) == 0:
+        return _segment_lit_fraction(stats, config), {"method": "lit_fraction"}
+    return _segment_adaptive(stats, config)
+
+
+def _cleanup(coarse: np.ndarray, stats: ViewStats, config: PreprocessConfig, rim: int) -> np.ndarray:
+    """Morphology, components, holes, sub-pixel boundary (steps 4-5 of the module doc)."""
     import cv2
 
-    if stats.count == 0:
-        return np.zeros(stats.peak.shape, bool)
+    m = coarse.astype(np.uint8)
+    if config.open_radius:
+        m = cv2.morphologyEx(m, cv2.MORPH_OPEN, _disk(config.open_radius))
+    if config.close_radius:
+        m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, _disk(config.close_radius))
+    mask = keep_components(m.astype(bool), config)
+    if config.fill_holes:
+        mask = fill_holes(mask)
+    if mask.any():
+        mask = refine_boundary(mask, stats.unsaturated_mean_luminance(), rim=rim)
+        mask = keep_components(mask, config)
+        if config.fill_holes:
+            mask = fill_holes(mask)
+    return mask
+
+
+def _segment_adaptive(stats: ViewStats, config: PreprocessConfig) -> tuple[np.ndarray, dict[str, Any]]:
+    import cv2
+
+    shape = stats.peak.shape
+    mostly_unsat = (stats.saturated <= config.max_saturated_fraction * stats.count) & (stats.unsaturated > 0)
+    ring = border_ring(shape, config.border_width)
+    floor = 0.25  # stops: the ladder's resolution (one level per stop, interpolated)
+    sigma = config.background_blur * float(np.hypot(*shape))
+    # per quantile: lit level (stops re the cutoff, higher = brighter), background map, spread map, object level
+    layers = []
+    info: dict[str, Any] = {"method": "adaptive", "quantiles": {}}
+    # a quantile reaches at least `min_quantile_frames` frames: flares and visible bulbs are in a few frames only
+    qs = sorted({max(q, config.min_quantile_frames / max(stats.count, 1)) for q in config.quantiles()})
+    for q in qs:
+        level = stats.brightness_quantile(min(q, 0.9))
+        b0, s0 = _robust(level[ring])
+        s0 = max(s0, floor)
+        strong = ~ring & (level > b0 + max(config.background_sigmas * s0, 2.0 * config.min_contrast_stops))
+        if not strong.any():
+            continue
+        obj = float(np.median(level[strong]))
+        layers.append([level, np.full(shape, b0, np.float32), np.full(shape, s0, np.float32), obj])
+        info["quantiles"][str(q)] = {
+            "background_stops": round(-b0, 3),
+            "background_spread_stops": round(s0, 3),
+            "object_stops": round(-obj, 3),
+        }
+    if not layers:
+        return np.zeros(shape, bool), info
+    mask = np.zeros(shape, bool)
+    for it in range(3):
+        score = np.full(shape, -np.inf, np.float32)
+        for level, back, spread, obj in layers:
+            contrast = np.maximum(
+                np.maximum(config.background_sigmas * spread, config.contrast_fraction * (obj - back)),
+                config.min_contrast_stops,
+            )
+            np.maximum(score, (level - back) / contrast, out=score)
+        coarse = (score > 1.0) & mostly_unsat
+        mask = _cleanup(coarse, stats, config, rim=2)
+        if it == 2 or not mask.any():
+            break
+        # the background where the object is not: outside the dilated mask (the border ring counts double)
+        away = ~cv2.dilate(mask.astype(np.uint8), _disk(max(3, config.band_width))).astype(bool)
+        if np.count_nonzero(away) < 0.05 * mask.size:
+            break
+        weight = away.astype(np.float32) * (1.0 + ring)
+        for layer in layers:
+            level = layer[0]
+            layer[1] = _normalised_blur(level, weight, sigma)
+            layer[2] = np.maximum(1.2533 * _normalised_blur(np.abs(level - layer[1]), weight, sigma), floor)
+    return mask, info
+
+
+def _segment_lit_fraction(stats: ViewStats, config: PreprocessConfig) -> np.ndarray:
+    """The old rule: lit (above each frame's dark level + lit_floor x cutoff) in min_lit_fraction of frames."""
+    import cv2
+
     unsat = stats.unsaturated
     mostly_unsat = stats.saturated <= config.max_saturated_fraction * stats.count
     coarse = (stats.lit_fraction() >= config.min_lit_fraction) & mostly_unsat & (unsat > 0)
@@ -108,6 +231,44 @@ def segment(stats: ViewStats, config: PreprocessConfig) -> np.ndarray:
     return mask
 
 
+def border_fraction(mask: np.ndarray) -> float:
+    """Fraction of the frame's outermost pixels (its perimeter) that are foreground."""
+    edge = np.concatenate([mask[0], mask[-1], mask[1:-1, 0], mask[1:-1, -1]])
+    return float(edge.mean()) if edge.size else 0.0
+
+
+def mask_flags(mask: np.ndarray, config: PreprocessConfig) -> list[str]:
+    """Why a view's mask looks wrong on its own (empty: plausible): touching most of the border, or a
+    foreground fraction outside [flag_min_fraction, flag_max_fraction]."""
+    flags = []
+    touch = border_fraction(mask)
+    if touch > config.flag_border_fraction:
+        flags.append(f"mask touches {touch:.0%} of the frame border")
+    fg = float(mask.mean())
+    if fg > config.flag_max_fraction:
+        flags.append(f"foreground covers {fg:.0%} of the frame")
+    elif fg < config.flag_min_fraction:
+        flags.append(f"foreground covers only {fg:.2%} of the frame")
+    return flags
+
+
+def group_flags(fractions: dict[str, float], ratio: float) -> dict[str, str]:
+    """Views (name -> foreground fraction, the views of one group) whose foreground fraction differs from the
+    median of the others by more than `ratio` times either way: name -> reason."""
+    out: dict[str, str] = {}
+    if len(fractions) < 3 or ratio <= 1:
+        return out
+    for name, f in fractions.items():
+        others = [v for k, v in fractions.items() if k != name]
+        med = float(np.median(others))
+        if med <= 0 and f <= 0:
+            continue
+        r = (f + 1e-6) / (med + 1e-6)
+        if r > ratio or r < 1.0 / ratio:
+            out[name] = f"foreground fraction {f:.1%} vs {med:.1%} (median of the other views of its group)"
+    return out
+
+
 def zone_map(mask: np.ndarray, band_width: int) -> np.ndarray:
     """uint8 zones: ZONE_FOREGROUND inside, ZONE_BAND within `band_width` pixels of the silhouette (both
     sides), ZONE_BACKGROUND elsewhere."""
@@ -125,8 +286,11 @@ def zone_map(mask: np.ndarray, band_width: int) -> np.ndarray:
     return zones
 
 
-def overlay(wellit_u8: np.ndarray, mask: np.ndarray, zones: np.ndarray) -> np.ndarray:
-    """RGB preview: the well-lit image, background darkened, band tinted, silhouette outlined in green."""
+def overlay(
+    wellit_u8: np.ndarray, mask: np.ndarray, zones: np.ndarray, flags: list[str] | None = None
+) -> np.ndarray:
+    """RGB preview: the well-lit image, background darkened, band tinted, silhouette outlined in green; a
+    flagged view gets a red frame and the word FLAGGED (and so does its tile in the demo's masks.png)."""
     import cv2
 
     img = wellit_u8.astype(np.float32)
@@ -136,6 +300,14 @@ def overlay(wellit_u8: np.ndarray, mask: np.ndarray, zones: np.ndarray) -> np.nd
     contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
     out = np.clip(img, 0, 255).astype(np.uint8)
     cv2.drawContours(out, contours, -1, (0, 255, 0), 1)
+    if flags:
+        h, w = out.shape[:2]
+        t = max(2, min(h, w) // 40)
+        cv2.rectangle(out, (0, 0), (w - 1, h - 1), (255, 0, 0), t)
+        scale = max(0.3, min(h, w) / 400)
+        cv2.putText(
+            out, "FLAGGED", (2 * t, 2 * t + int(20 * scale)), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 0, 0), 1
+        )
     return out
 
 

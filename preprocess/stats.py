@@ -19,6 +19,18 @@ import numpy as np
 from lightstage.atomic import atomic_path
 from lightstage.errors import LightstageError
 
+# The brightness ladder: per pixel, how many unsaturated frames are brighter than cutoff x 2^-k for each k
+# (one level per stop, 1 to 16 stops below the cutoff). It is a measurement grid, not a tuned threshold: it
+# gives every pixel's distribution of brightness over the lights, from which segmentation reads robust
+# quantiles (a level exceeded in a quarter of the frames ignores flares and shadows in a few frames).
+LADDER_STOPS = tuple(range(1, 17))
+
+
+def ladder_levels(cutoff: float) -> np.ndarray:
+    """(K,) float32 luminance levels of the ladder for a stage's saturation cutoff."""
+    return (float(cutoff) * 2.0 ** -np.asarray(LADDER_STOPS, np.float64)).astype(np.float32)
+
+
 # Rec. 709 luminance weights of linear RGB.
 LUMA = (0.2126, 0.7152, 0.0722)
 _LUMA_MATRIX = np.array([LUMA], np.float32)
@@ -37,7 +49,8 @@ class ViewStats:
 
     mean/m2: per-channel mean and sum of squared deviations over all `count` frames (variance = m2/count).
     peak: max luminance; saturated: frames flagged saturated; lit: unsaturated frames whose luminance
-    exceeded that frame's lit threshold; lum_sum: luminance summed over unsaturated frames.
+    exceeded that frame's lit threshold; lum_sum: luminance summed over unsaturated frames; ladder: (K, h, w)
+    unsaturated frames brighter than each level of `ladder_levels` (empty (0, h, w) when not accumulated).
     """
 
     count: int
@@ -48,7 +61,12 @@ class ViewStats:
     saturated: np.ndarray
     lit: np.ndarray
     lum_sum: np.ndarray
+    ladder: np.ndarray | None = None
     extras: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.ladder is None:
+            self.ladder = np.zeros((0, *self.peak.shape), np.uint16)
 
     @property
     def variance(self) -> np.ndarray:
@@ -64,6 +82,30 @@ class ViewStats:
 
     def lit_fraction(self) -> np.ndarray:
         return (self.lit / np.maximum(self.unsaturated, 1)).astype(np.float32)
+
+    def brightness_quantile(self, q: float) -> np.ndarray:
+        """(h, w) float32: per pixel, the brightness (stops relative to the cutoff, <= 0; higher is brighter)
+        that a fraction `q` of its unsaturated frames exceed, read from the ladder and interpolated linearly
+        between its levels; -(K + 1) where fewer than `q` of the frames reach the lowest level."""
+        k = len(self.ladder)
+        if k == 0:
+            raise LightstageError("statistics without the brightness ladder (rerun preprocess)")
+        n = np.maximum(self.unsaturated, 1).astype(np.float32)
+        frac = self.ladder.astype(np.float32) / n[None]  # rising with the ladder index (levels fall)
+        stops = np.asarray(LADDER_STOPS, np.float32)
+        above = frac >= np.float32(q)
+        first = np.where(above.any(axis=0), above.argmax(axis=0), k)  # first level reached by q of frames
+        out = np.full(frac.shape[1:], -(stops[-1] + 1.0), np.float32)
+        top = first == 0
+        out[top] = -stops[0]
+        mid = (first > 0) & (first < k)
+        if mid.any():
+            j = first[mid]
+            r, c = np.nonzero(mid)
+            lo, hi = frac[j - 1, r, c], frac[j, r, c]
+            t = (np.float32(q) - lo) / np.maximum(hi - lo, 1e-6)
+            out[mid] = -(stops[j - 1] + t * (stops[j] - stops[j - 1]))
+        return out
 
     def chroma_variation(self) -> np.ndarray:
         """(h, w) RMS over channels of the per-channel standard deviation relative to the mean luminance."""
@@ -98,6 +140,7 @@ class ViewStats:
             saturated=self.saturated + other.saturated,
             lit=self.lit + other.lit,
             lum_sum=self.lum_sum + other.lum_sum,
+            ladder=self.ladder + other.ladder if len(self.ladder) == len(other.ladder) else _no_ladder(self),
         )
 
     # ---- files ---------------------------------------------------------------------------------------
@@ -111,6 +154,7 @@ class ViewStats:
             "saturated": self.saturated,
             "lit": self.lit,
             "lum_sum": self.lum_sum,
+            "ladder": self.ladder,
         }
 
     def save(self, path: str | os.PathLike[str], extras: dict[str, np.ndarray] | None = None) -> None:
@@ -138,11 +182,16 @@ class ViewStats:
                 saturated=data.pop("saturated"),
                 lit=data.pop("lit"),
                 lum_sum=data.pop("lum_sum"),
+                ladder=data.pop("ladder", None),
             )
         except KeyError as e:
             raise LightstageError(f"{path}: statistics lack {e}") from None
         stats.extras = data
         return stats
+
+
+def _no_ladder(s: ViewStats) -> np.ndarray:
+    return np.zeros((0, *s.peak.shape), np.uint16)
 
 
 def empty_stats(height: int, width: int) -> ViewStats:
@@ -156,6 +205,7 @@ def empty_stats(height: int, width: int) -> ViewStats:
         saturated=np.zeros((height, width), np.uint16),
         lit=np.zeros((height, width), np.uint16),
         lum_sum=np.zeros((height, width), np.float32),
+        ladder=np.zeros((len(LADDER_STOPS), height, width), np.uint16),
     )
 
 
@@ -181,8 +231,11 @@ def merge_tree(parts: Iterable[ViewStats]) -> ViewStats | None:
 class StatsAccumulator:
     """Streams frames of one chunk of lights into float32 sums; `finish` converts to ViewStats."""
 
-    def __init__(self, height: int, width: int):
+    def __init__(self, height: int, width: int, cutoff: float | None = None):
+        """`cutoff`: the stage's saturation cutoff, for the brightness ladder (None: no ladder)."""
         self.height, self.width = height, width
+        self.levels = ladder_levels(cutoff) if cutoff is not None else np.zeros(0, np.float32)
+        self.ladder = np.zeros((len(self.levels), height, width), np.uint16)
         self.count = 0
         self.lights: list[int] = []
         self.s1 = np.zeros((height, width, 3), np.float32)
@@ -216,6 +269,10 @@ class StatsAccumulator:
         lit = cv2.compare(lum, float(lit_threshold), cv2.CMP_GT)  # 255 where lit
         np.bitwise_and(lit, unsat, out=lit)  # 1 where lit and unsaturated
         np.add(self.lit, lit, out=self.lit, casting="unsafe")
+        for k, level in enumerate(self.levels):
+            above = cv2.compare(lum, float(level), cv2.CMP_GT)
+            np.bitwise_and(above, unsat, out=above)
+            np.add(self.ladder[k], above, out=self.ladder[k], casting="unsafe")
         self.count += 1
         self.lights.append(int(light))
 
@@ -223,7 +280,9 @@ class StatsAccumulator:
         """Statistics of the frames added so far (float64 arithmetic for the sums-to-moments step)."""
         n = self.count
         if n == 0:
-            return empty_stats(self.height, self.width)
+            s = empty_stats(self.height, self.width)
+            s.ladder = self.ladder.copy()
+            return s
         mean = np.empty_like(self.s1)
         m2 = np.empty_like(self.s2)
         for r in range(0, self.height, 256):  # row bands keep the float64 temporaries small
@@ -239,11 +298,16 @@ class StatsAccumulator:
             saturated=self.saturated.copy(),
             lit=self.lit.copy(),
             lum_sum=self.lum_sum.copy(),
+            ladder=self.ladder.copy(),
         )
 
 
 def direct_stats(
-    frames: list[np.ndarray], saturated: list[np.ndarray], lit_thresholds: list[float], lights: list[int]
+    frames: list[np.ndarray],
+    saturated: list[np.ndarray],
+    lit_thresholds: list[float],
+    lights: list[int],
+    cutoff: float | None = None,
 ) -> ViewStats:
     """Reference statistics from the whole stack in memory (float64; tests)."""
     x = np.stack(frames).astype(np.float64)
@@ -260,4 +324,7 @@ def direct_stats(
         saturated=s.sum(axis=0).astype(np.uint16),
         lit=lit.sum(axis=0).astype(np.uint16),
         lum_sum=(lum * unsat).sum(axis=0).astype(np.float32),
+        ladder=np.stack([((lum > lv) & unsat).sum(axis=0) for lv in ladder_levels(cutoff)]).astype(np.uint16)
+        if cutoff is not None
+        else None,
     )
