@@ -17,6 +17,8 @@ from lightstage.cameras import PinholeCamera, pixel_rays
 from lightstage.capture.frames import write_exr, write_image
 from lightstage.capture.sim_scene import KIND_NONE, SimScene, ViewHits, cast_view, first_hit, shade
 
+# An LED's beam (aimed at the stage centre) lights nothing beyond this angle off its axis.
+BEAM_HALF_ANGLE_DEG = 50.0
 # Frames with at most this many values share one pool of normals per view (2x the frame).
 POOL_MAX_VALUES = 16_000_000
 
@@ -141,8 +143,8 @@ def make_backdrop(
 
 
 def backdrop_frame(bd: Backdrop, p: np.ndarray, gain: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """(H, W, 3) backdrop radiance under the light at `p`: an LED aimed at the centre (emission ~ cos^2 of the
-    angle off its axis, none behind it), inverse square from the backdrop's typical distance, cosine at the
+    """(H, W, 3) backdrop radiance under the light at `p`: an LED aimed at the centre (its beam falls to 0 at
+    BEAM_HALF_ANGLE_DEG off its axis, so lights on the far side do not light the backdrop), inverse square from the backdrop's typical distance, cosine at the
     cloth; uneven across the frame by construction. `gain`: the light's relative RGB emission."""
     import cv2
 
@@ -150,7 +152,8 @@ def backdrop_frame(bd: Backdrop, p: np.ndarray, gain: np.ndarray, shape: tuple[i
     dist = np.linalg.norm(to_pt, axis=-1)
     dirn = to_pt / dist[:, None]
     axis = -p / max(float(np.linalg.norm(p)), 1e-9)
-    emit = np.clip(dirn @ axis, 0, None) ** 2
+    cos_beam = np.cos(np.deg2rad(BEAM_HALF_ANGLE_DEG))
+    emit = np.clip((dirn @ axis - cos_beam) / (1.0 - cos_beam), 0, None) ** 1.5
     incidence = np.clip(-(dirn @ bd.normal), 0, None)
     ref = 2.4  # m: a light on the camera's side to the backdrop
     e = (emit * incidence * (ref / np.maximum(dist, 0.3)) ** 2).astype(np.float32)

@@ -170,7 +170,7 @@ def realistic_nuisances() -> Nuisances:
     return Nuisances(
         read_noise=1.6e-3,  # ~1.5 DN of the 12-bit converter
         shot_gain=2.2e-4,  # ~20,000 electrons at the cutoff
-        backdrop_stops=10.0,
+        backdrop_stops=9.0,
         black_level=0.07,  # ~64 DN
         quantise_bits=12,
     )

@@ -172,7 +172,7 @@ class PreprocessConfig:
 
 
 # Bumped when the statistics or segmentation change meaning, so stale view outputs are recomputed.
-STATS_FORMAT = 3  # 2: frame thumbnails cover whole blocks only; 3: brightness ladder, frames / LED intensity
+STATS_FORMAT = 3  # 2: frame thumbnails cover whole blocks only; 3: brightness ladder, frames / LED intensity, flare vs the upper quartile
 
 
 def _hash(obj: Any) -> str:

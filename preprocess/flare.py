@@ -2,7 +2,7 @@
 
 While a view streams by, each frame leaves a small luminance thumbnail and a saturated-fraction thumbnail
 (a few KB). Once the view's mask is known, a frame's flare score is the light it puts outside the dilated
-mask beyond the view's typical background (per-pixel median over frames), saturated bulbs counted at the
+mask beyond twice the view's typical background (per-pixel upper quartile over frames), saturated bulbs counted at the
 cutoff, relative to the view's typical foreground energy. Frames scoring above the threshold are rejected.
 """
 
@@ -14,6 +14,9 @@ import numpy as np
 
 # Percentile of a frame's thumbnail luminance taken as its dark (background) level.
 DARK_PERCENTILE = 5.0
+# Flare scores count light beyond TYPICAL_FACTOR x this per-pixel percentile over the view's frames.
+TYPICAL_PERCENTILE = 75.0
+TYPICAL_FACTOR = 2.0
 
 
 @dataclass(frozen=True)
@@ -80,7 +83,9 @@ def flare_scores(
     inside = mask_thumbnail(mask, dilate, factor)
     outside = ~inside
     px = _whole_blocks(mask, factor).size / float(th * tw)  # processed pixels per thumbnail pixel
-    typical = np.median(lum_thumbs, axis=0)
+    # the light a frame adds beyond twice the view's upper-quartile background: a lit backdrop varies with the
+    # light within that range (it is lit in most frames), a flare far beyond it
+    typical = TYPICAL_FACTOR * np.percentile(lum_thumbs, TYPICAL_PERCENTILE, axis=0)
     excess = np.maximum(lum_thumbs - typical[None], 0.0)
     excess = np.maximum(excess, sat_thumbs * cutoff)  # saturated area counts at the cutoff
     outside_energy = (excess[:, outside]).sum(axis=1) * px
