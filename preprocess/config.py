@@ -39,6 +39,7 @@ class PreprocessConfig:
     contrast_fraction: float = 0.3  # ... and by this fraction of the way (in stops) to the object level ...
     min_contrast_stops: float = 1.0  # ... and by at least this many stops
     background_blur: float = 0.1  # smoothing of the local background map (x the frame diagonal)
+    colour_band: int = 3  # pixels outside the silhouette that colour may add (0: no colour refinement)
     # lit_fraction (and the per-frame `lit` statistic): a pixel is lit in a frame when brighter than
     # lit_ratio x the frame's dark level + lit_floor x the stage's saturation cutoff, foreground when lit in
     # at least min_lit_fraction of its unsaturated frames (fixed numbers: tuned on the old clean simulator)
@@ -120,7 +121,15 @@ class PreprocessConfig:
                 raise bad(key, "expected an integer >= 1")
         if self.sfm_lights < 1:
             raise bad("sfm_lights", "expected an integer >= 1")
-        for key in ("window", "sfm_max_side", "open_radius", "close_radius", "band_width", "flare_dilate"):
+        for key in (
+            "window",
+            "sfm_max_side",
+            "open_radius",
+            "close_radius",
+            "band_width",
+            "flare_dilate",
+            "colour_band",
+        ):
             if getattr(self, key) < 0:
                 raise bad(key, "expected an integer >= 0")
         for key in (

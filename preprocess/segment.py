@@ -154,6 +154,55 @@ def _cleanup(coarse: np.ndarray, stats: ViewStats, config: PreprocessConfig, rim
     return mask
 
 
+def colour_refine(mask: np.ndarray, stats: ViewStats, config: PreprocessConfig) -> np.ndarray:
+    """Add the pixels within `colour_band` of the silhouette whose colour (chromaticity of the mean image over the
+    whole stack, which does not depend on brightness) is clearly not the local background's and nearer the
+    local object's, and that are no brighter than the local background (a partly covered pixel takes the bright
+    object's colour): dark-albedo parts and shadowed rims are as dark as a lit backdrop but keep their colour.
+    Inactive where the object and the backdrop have the same colour (their chromaticities differ by less than
+    `background_sigmas` background spreads), and for pixels below the noise floor of the background."""
+    import cv2
+
+    if config.colour_band <= 0 or not mask.any() or mask.all():
+        return mask
+    rgb = np.maximum(stats.mean.astype(np.float32), 0)
+    lum = np.maximum(rgb @ np.array([0.2126, 0.7152, 0.0722], np.float32), 1e-12)
+    chroma = np.log(np.maximum(rgb, 1e-12) / lum[..., None])[..., [0, 2]]  # log r/Y, log b/Y
+    m8 = mask.astype(np.uint8)
+    sigma = 2.0 * max(config.colour_band, 1)
+    inner = cv2.erode(m8, _disk(2)).astype(bool)
+    away = ~cv2.dilate(m8, _disk(config.colour_band + 2)).astype(bool)
+    near_out = cv2.dilate(m8, _disk(config.colour_band)).astype(bool) & ~mask
+    if not inner.any() or not away.any() or not near_out.any():
+        return mask
+    # reliable colour: brighter than the background's noise (its lowest decile of mean luminance, twice)
+    reliable = lum > 2.0 * float(np.percentile(lum[away], 10))
+    w_in, w_out = (inner & reliable), (away & reliable)
+    if not w_in.any() or not w_out.any():
+        return mask
+    c_obj = np.stack([_normalised_blur(chroma[..., k], w_in, sigma) for k in range(2)], axis=-1)
+    c_bg = np.stack([_normalised_blur(chroma[..., k], w_out, 4 * sigma) for k in range(2)], axis=-1)
+    dev = np.linalg.norm(chroma - c_bg, axis=-1)
+    spread = 1.4826 * float(np.median(dev[w_out]))
+    if not spread > 0:
+        return mask
+    separation = np.linalg.norm(c_obj - c_bg, axis=-1)
+    d_obj = np.linalg.norm(chroma - c_obj, axis=-1)
+    add = near_out & reliable & (separation > config.background_sigmas * spread)
+    add &= (dev > config.background_sigmas * spread) & (d_obj < dev)
+    # not a pixel that is partly covered by the bright object (its colour would be the object's): as dark as the
+    # local background, like a dark-albedo part of the object
+    lum_bg = _normalised_blur(lum, w_out, 4 * sigma)
+    add &= lum < 1.5 * lum_bg
+    if not add.any():
+        return mask
+    out = mask | add
+    # keep only additions connected to the mask
+    n, labels = cv2.connectedComponents(out.astype(np.uint8), connectivity=8)
+    keep = np.unique(labels[mask])
+    return np.isin(labels, keep[keep > 0])
+
+
 def _segment_adaptive(stats: ViewStats, config: PreprocessConfig) -> tuple[np.ndarray, dict[str, Any]]:
     import cv2
 
@@ -195,6 +244,9 @@ def _segment_adaptive(stats: ViewStats, config: PreprocessConfig) -> tuple[np.nd
         coarse = (score > 1.0) & mostly_unsat
         mask = _cleanup(coarse, stats, config, rim=2)
         if it == 2 or not mask.any():
+            mask = colour_refine(mask, stats, config)
+            if config.fill_holes:
+                mask = fill_holes(mask)
             break
         # the background where the object is not: outside the dilated mask (the border ring counts double)
         away = ~cv2.dilate(mask.astype(np.uint8), _disk(max(3, config.band_width))).astype(bool)
