@@ -2,6 +2,9 @@
 
 Linear HDR is multiplied by `exposure`, clipped to [0, 1] and encoded with the sRGB transfer curve.
 The exposure for a capture is chosen once (see `auto_exposure`) so previews and metrics agree.
+
+`paper_tonemap` is the convention of the paper's evaluation code (sRGB of log(1 + hdr), no exposure), used
+only to report metrics that can be set beside the paper's tables.
 """
 
 from __future__ import annotations
@@ -18,6 +21,12 @@ def srgb_encode(linear: np.ndarray) -> np.ndarray:
 def tonemap(hdr: np.ndarray, exposure: float = 1.0) -> np.ndarray:
     """Linear HDR -> display-referred float in [0, 1]: sRGB(clip(exposure * hdr))."""
     return srgb_encode(np.asarray(hdr, dtype=np.float32) * np.float32(exposure)).astype(np.float32)
+
+
+def paper_tonemap(hdr: np.ndarray) -> np.ndarray:
+    """Linear HDR -> [0, 1] as the paper's evaluation code scores images: sRGB(clip(log(1 + hdr), 0, 1))."""
+    x = np.log1p(np.maximum(np.asarray(hdr, dtype=np.float32), np.float32(0.0)))
+    return srgb_encode(x).astype(np.float32)
 
 
 def tonemap_u8(hdr: np.ndarray, exposure: float = 1.0) -> np.ndarray:

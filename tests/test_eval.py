@@ -1,6 +1,9 @@
-"""Evaluation: metrics equal reference formulas/implementations on known images; run_eval on a work directory
-with test images in the shard format writes reports/eval.json (model beside the constant baseline, LPIPS
-unavailable without local weights) and side-by-side PNGs; the TrainedModel interface."""
+"""Evaluation: metrics equal reference formulas/implementations on known images (SSIM with the field's
+Gaussian window against an independent implementation; the paper code's log tonemap); LPIPS through the lpips
+package (unavailable without local backbone weights; the wiring checked with a fake backbone file); masked
+evaluation of a perfect prediction scores the ceiling; the simulator writes a noise-free render of every test
+frame; run_eval on a work directory with test images in the shard format writes reports/eval.json (model beside
+the constant baseline and the ceiling) and side-by-side PNGs; the TrainedModel interface."""
 
 from __future__ import annotations
 
@@ -9,13 +12,16 @@ import json
 import numpy as np
 import pytest
 import torch
+from scipy.ndimage import gaussian_filter
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
+from lightstage.capture.frames import write_exr
 from lightstage.errors import LightstageError
-from lightstage.tonemap import tonemap
+from lightstage.tonemap import paper_tonemap, srgb_encode, tonemap
+from lightstage.training import evaluate
 from lightstage.training.evaluate import run_eval
-from lightstage.training.lpips import lpips_or_none
-from lightstage.training.metrics import image_metrics, psnr, ssim
+from lightstage.training.lpips import LPIPSVGG, lpips_or_none, vgg16_features
+from lightstage.training.metrics import ceiling_scores, image_metrics, psnr, scores, ssim
 from lightstage.training.synthetic import SyntheticSphere
 from lightstage.training.testing import micro_config
 from lightstage.training.trained import load_trained
@@ -32,13 +38,58 @@ def test_psnr_formula_and_reference():
     assert psnr(x, y) == pytest.approx(peak_signal_noise_ratio(y, x, data_range=1.0))
 
 
-def test_ssim_matches_skimage_and_bounds():
-    rng = np.random.default_rng(1)
-    x = rng.random((32, 32, 3)).astype(np.float32)
-    y = np.clip(x + 0.1 * rng.normal(size=x.shape), 0, 1).astype(np.float32)
-    assert ssim(x, y) == pytest.approx(structural_similarity(x, y, channel_axis=-1, data_range=1.0))
+def _ssim_formula(x: np.ndarray, y: np.ndarray, sigma: float = 1.5, radius: int = 5) -> float:
+    """Wang et al. 2004 written out: Gaussian-weighted local statistics (11x11, sigma 1.5), C1 = (0.01)^2,
+    C2 = (0.03)^2, the SSIM map averaged over window positions fully inside the image, then over channels."""
+    vals = []
+    for c in range(x.shape[-1]):
+        a, b = x[..., c].astype(np.float64), y[..., c].astype(np.float64)
+
+        def blur(im):
+            return gaussian_filter(im, sigma, truncate=radius / sigma)
+
+        mx, my = blur(a), blur(b)
+        vx, vy, cxy = blur(a * a) - mx * mx, blur(b * b) - my * my, blur(a * b) - mx * my
+        c1, c2 = 0.01**2, 0.03**2
+        m = ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
+        vals.append(m[radius:-radius, radius:-radius].mean())
+    return float(np.mean(vals))
+
+
+def _known_pair(seed: int = 1, size: int = 48) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:size, 0:size] / size
+    x = np.stack([0.5 + 0.4 * np.sin(6 * xx + k) * np.cos(5 * yy) for k in range(3)], -1)
+    y = np.clip(x + 0.08 * rng.normal(size=x.shape), 0, 1)
+    return x.astype(np.float32), y.astype(np.float32)
+
+
+def test_ssim_is_the_gaussian_window_ssim_of_the_field():
+    x, y = _known_pair()
+    assert ssim(x, y) == pytest.approx(_ssim_formula(x, y), abs=1e-6)
+    assert ssim(x, y) == pytest.approx(
+        structural_similarity(
+            x,
+            y,
+            gaussian_weights=True,
+            sigma=1.5,
+            use_sample_covariance=False,
+            data_range=1.0,
+            channel_axis=-1,
+        )
+    )
+    # not scikit-image's default (7x7 uniform window, sample covariance) that this project used before
+    assert abs(ssim(x, y) - structural_similarity(x, y, channel_axis=-1, data_range=1.0)) > 1e-4
     assert ssim(x, x) == pytest.approx(1.0)
     assert ssim(x, y) < 1.0
+
+
+def test_ssim_matches_pytorch_msssim():
+    pm = pytest.importorskip("pytorch_msssim")
+    x, y = _known_pair(seed=3, size=64)
+    t = [torch.from_numpy(a).permute(2, 0, 1)[None].double() for a in (x, y)]
+    ref = float(pm.ssim(t[0], t[1], data_range=1.0, size_average=True, win_size=11, win_sigma=1.5))
+    assert ssim(x, y) == pytest.approx(ref, abs=1e-5)  # its window is built in float32
 
 
 def test_image_metrics_use_project_tonemap():
@@ -49,11 +100,84 @@ def test_image_metrics_use_project_tonemap():
     assert m["ssim"] == pytest.approx(ssim(tonemap(hdr, 0.7), tonemap(ref, 0.7)))
 
 
+def test_paper_convention_on_known_arrays():
+    e1 = np.float32(np.e - 1)  # log(1 + e - 1) = 1 -> sRGB 1
+    np.testing.assert_allclose(paper_tonemap(np.array([0.0, e1, 100.0, -3.0])), [0, 1, 1, 0], atol=1e-6)
+    x = np.array([0.01, 0.2, 1.0], np.float32)
+    np.testing.assert_allclose(paper_tonemap(x), srgb_encode(np.log1p(x)), rtol=1e-6)
+    # masked scoring: the target is 0 outside the mask; the prediction is scored as rendered
+    target = np.full((16, 16, 3), 0.5, np.float32)
+    mask = np.zeros((16, 16), bool)
+    mask[4:12, 4:12] = True
+    pred = np.where(mask[..., None], target, 0.0).astype(np.float32)  # right inside, 0 outside
+    s = scores(pred, target, mask, exposure=1.0)
+    assert s["psnr"] == s["psnr_paper"] == float("inf") and s["ssim"] == pytest.approx(1.0)
+    t05 = float(paper_tonemap(np.float32(0.5)))  # the background pixels' error in the paper convention
+    assert s["psnr_full"] == pytest.approx(-10 * np.log10(0.75 * float(tonemap(np.float32(0.5))) ** 2))
+    off = scores(pred + 0.1 * ~mask[..., None], target, mask, exposure=1.0)
+    t01 = float(paper_tonemap(np.float32(0.1)))
+    assert off["psnr_paper"] == pytest.approx(-10 * np.log10(0.75 * t01**2), rel=1e-5)
+    assert t05 > 0 and s["lpips"] is None and s["lpips_paper"] is None
+
+
 def test_lpips_unavailable_without_local_weights(tmp_path):
     fn, note = lpips_or_none("", "", "cpu")
     assert fn is None and note.startswith("unavailable")
     fn, note = lpips_or_none(str(tmp_path / "vgg16.pth"), str(tmp_path / "vgg.pth"), "cpu")
     assert fn is None and "not found" in note
+    torch.save({"0.weight": torch.zeros(64, 3, 3, 3)}, tmp_path / "partial.pth")
+    fn, note = lpips_or_none(str(tmp_path / "partial.pth"), "", "cpu")
+    assert fn is None and note.startswith("unavailable") and "VGG16" in note  # never a partly random backbone
+
+
+def _fake_backbone(path) -> dict[str, torch.Tensor]:
+    """A VGG16 `features` state dict with random weights (torchvision's when it imports): wiring only, not a
+    real LPIPS figure."""
+    torch.manual_seed(0)
+    try:
+        from torchvision.models import vgg16
+
+        features = vgg16(weights=None).features
+    except Exception:  # noqa: BLE001 - a CPU torch with a CUDA-built torchvision: the same layout
+        features = vgg16_features()
+    state = features.state_dict()
+    torch.save(state, path)
+    return state
+
+
+def test_lpips_loads_a_local_backbone_into_the_lpips_package(tmp_path):
+    import lpips
+
+    state = _fake_backbone(tmp_path / "vgg16_features.pth")
+    fn, note = lpips_or_none(str(tmp_path / "vgg16_features.pth"), "", "cpu")
+    assert fn is not None and "lpips package" in note
+    x, y = _known_pair(size=64)
+    assert fn(x, x) == pytest.approx(0.0, abs=1e-7)
+    assert np.isfinite(fn(x, y)) and fn(x, y) > 0
+    net = LPIPSVGG(state)
+    assert isinstance(net.net, lpips.LPIPS)
+    loaded = {**net.net.net.slice1.state_dict(), **net.net.net.slice5.state_dict()}
+    assert torch.equal(loaded["0.weight"], state["0.weight"]) and torch.equal(
+        loaded["28.bias"], state["28.bias"]
+    )
+    shipped = torch.load(
+        f"{lpips.__path__[0]}/weights/v0.1/vgg.pth", map_location="cpu", weights_only=True
+    )  # the package's own linear layers
+    assert torch.equal(net.net.lin4.model[1].weight, shipped["lin4.model.1.weight"])
+    # a full torchvision state dict (features.* + classifier.*) is accepted too
+    torch.save({**{f"features.{k}": v for k, v in state.items()}, "classifier.0.weight": torch.zeros(2, 2)},
+               tmp_path / "vgg16_full.pth")  # fmt: skip
+    fn2, _ = lpips_or_none(str(tmp_path / "vgg16_full.pth"), "", "cpu")
+    assert fn2(x, y) == pytest.approx(fn(x, y), rel=1e-6)
+
+
+def test_lpips_stand_in_layout_is_torchvisions():
+    try:
+        from torchvision.models import vgg16
+    except Exception as e:  # noqa: BLE001
+        pytest.skip(f"torchvision does not import here ({type(e).__name__})")
+    ours = {k: v.shape for k, v in vgg16_features().state_dict().items()}
+    assert ours == {k: v.shape for k, v in vgg16(weights=None).features.state_dict().items()}
 
 
 def _write_test_split(work: WorkDir, src: SyntheticSphere, n: int = 2) -> None:
@@ -143,3 +267,120 @@ def test_cli_train_and_eval_on_dataset_shards(tmp_path):
     ev = json.loads(work.report("eval").read_text())
     assert ev["count"] == 2 and ev["lpips"] == "unavailable"
     assert main(["train", str(work.root), "--config", "nonexistent.yaml"]) == 2
+
+
+def _write_simulated_test_split(tmp_path, src: SyntheticSphere, with_clean=(True, True, False)) -> WorkDir:
+    """A work directory whose capture.txt names a stand-in simulated capture: noisy test images with a
+    background outside their masks, in the shard format, and noise-free renders at 4x their resolution in
+    ground_truth/clean (as the simulator writes them) for the frames flagged in `with_clean`."""
+    work = WorkDir(tmp_path / "work")
+    capture = tmp_path / "capture"
+    (capture / "ground_truth").mkdir(parents=True)
+    template = "ground_truth/clean/{group}/{camera}/{light:03d}.exr"
+    (capture / "ground_truth" / "clean.json").write_text(json.dumps({"path_template": template}))
+    work.root.mkdir(parents=True, exist_ok=True)
+    work.capture_pointer.write_text(str(capture))
+    folder = work.shards_dir / "test"
+    folder.mkdir(parents=True)
+    rng = np.random.default_rng(5)
+    records = []
+    for k, img in enumerate(src.test_images(len(with_clean), size=16)):
+        clean = img.target.astype(np.float32)
+        mask = clean.sum(-1) > 0
+        noisy = np.maximum(clean + 0.03 * rng.normal(size=clean.shape), 0) + 0.05 * ~mask[..., None]
+        if with_clean[k]:
+            raw = np.repeat(np.repeat(clean, 4, axis=0), 4, axis=1)
+            write_exr(capture / template.format(group="000", camera="cam03", light=k), raw, half=False)
+        c = img.camera
+        np.savez(
+            folder / f"{img.name}.npz",
+            rgb=noisy.astype(np.float16),
+            saturated=np.zeros((16, 16), bool),
+            mask=mask,
+            K=c.K,
+            R=c.R,
+            t=c.t,
+            dist=np.zeros(5),
+            width=np.int64(16),
+            height=np.int64(16),
+            light_direction=img.light_direction,
+            light_position=img.light_direction * 1.5,
+            group=np.str_("000"),
+            camera=np.str_("cam03"),
+            light=np.int64(k),
+        )
+        records.append({"file": f"test/{img.name}.npz"})
+    (folder / "index.json").write_text(json.dumps({"images": records}))
+    return work
+
+
+def test_masked_evaluation_of_a_perfect_prediction_scores_the_ceiling(tmp_path, monkeypatch):
+    src = SyntheticSphere(batch_size=64)
+    work = _write_simulated_test_split(tmp_path, src)
+    fit(micro_config(steps=2), src, work.train_dir, src.centre, src.scale, progress=False)
+    perfect = {}  # the noise-free image, 0 outside the mask: what a perfect model trained on masked targets gives
+    for img in src.test_images(3, size=16):
+        perfect[tuple(np.round(img.light_direction, 9))] = img.target.astype(np.float32)
+    monkeypatch.setattr(
+        evaluate, "render_image", lambda model, cam, light, chunk: perfect[tuple(np.round(light, 9))]
+    )
+    run_eval(work, progress=False)
+    ev = json.loads(work.report("eval").read_text())
+    assert ev["count"] == 3 and ev["masked_count"] == 3 and ev["ceiling_count"] == 2
+    assert ev["ceiling"].startswith("noise-free renders") and "1 test image(s) have none" in ev["ceiling"]
+    for row in ev["images"][:2]:
+        for key in ("psnr", "ssim", "psnr_paper", "ssim_paper", "psnr_full", "ssim_full"):
+            assert np.isfinite(row[key]) and row[key] == pytest.approx(row[f"ceiling_{key}"], rel=1e-6), key
+        assert row["psnr_full"] < row["psnr"]  # the target's background counts in the full frame only
+    assert all(v is None for k, v in ev["images"][2].items() if k.startswith("ceiling_"))
+    assert ev["mean"]["ceiling_psnr"] == pytest.approx(np.mean([r["psnr"] for r in ev["images"][:2]]))
+    assert ev["mean"]["lpips"] is None and ev["lpips"] == "unavailable"
+
+    (tmp_path / "capture" / "ground_truth" / "clean.json").unlink()  # now it looks like a real capture
+    run_eval(work, progress=False)
+    ev = json.loads(work.report("eval").read_text())
+    assert ev["ceiling_count"] == 0 and ev["mean"]["ceiling_psnr"] is None
+    assert ev["ceiling"].startswith("unavailable") and "scores inf" in ev["ceiling"]
+
+
+def test_ceiling_scores_are_the_noise_free_render_against_the_masked_target():
+    rng = np.random.default_rng(7)
+    clean = rng.random((24, 24, 3)).astype(np.float32)
+    mask = np.zeros((24, 24), bool)
+    mask[6:18, 4:20] = True
+    target = clean + 0.02 * rng.normal(size=clean.shape).astype(np.float32)
+    c = ceiling_scores(clean, target, mask, exposure=1.0)
+    assert c["psnr"] == pytest.approx(
+        psnr(tonemap(clean * mask[..., None]), tonemap(target * mask[..., None]))
+    )
+    assert c["psnr_full"] == pytest.approx(psnr(tonemap(clean), tonemap(target)))
+    assert scores(target, target, mask, 1.0)["psnr_full"] == float("inf")  # real capture: the target itself
+
+
+def test_simulator_writes_a_clean_render_of_every_test_frame(tiny_capture):
+    """Every frame of the paper protocol's test split of a simulated capture has its noise-free render, and
+    it differs from the raw frame (processed as preprocess does) only by the nuisances."""
+    import cv2
+
+    from lightstage.capture.layout import open_capture
+    from lightstage.dataset.split import builtin_protocol, resolve
+    from lightstage.preprocess.downscale import decode_downscale
+    from lightstage.tonemap import auto_exposure
+    from lightstage.training.ceiling import CleanRenders
+
+    cap = open_capture(tiny_capture)
+    info = json.loads((tiny_capture / "ground_truth" / "clean.json").read_text())
+    clean = CleanRenders(tiny_capture, info["path_template"])
+    test = list(resolve(builtin_protocol("paper"), cap.stage).test.frames())
+    assert test and set(f.camera for f in test) <= set(info["every_light_cameras"])
+    assert all(clean.path(f).is_file() for f in test)
+    W, H = cap.stage.width, cap.stage.height
+    w, h = W // 4, H // 4
+    f = test[len(test) // 2]
+    ref = clean.get(f, (w, h))
+    raw = decode_downscale(cap.frame_path(f), (W, H), cap.stage.saturation).rgb
+    gt_mask = cv2.imread(str(tiny_capture / "ground_truth" / "masks" / f.group / f"{f.camera}.png"), 0) > 127
+    mask = gt_mask.reshape(h, 4, w, 4).all(axis=(1, 3))
+    assert ref.shape == raw.shape == (h, w, 3) and mask.any()
+    c = ceiling_scores(ref, raw, mask, auto_exposure(raw, mask=mask))
+    assert 25.0 < c["psnr"] < 80.0 and c["psnr_full"] < c["psnr"]

@@ -33,8 +33,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("--checkpoint", default=None, help="checkpoint file (default: WORK/train/checkpoint.pt)")
     e.add_argument("--device", default="auto", help="cpu | cuda | auto (default)")
     e.add_argument("--max-images", type=int, default=None, help="score only the first N test images")
-    e.add_argument("--lpips-weights", default=None, help="local torchvision VGG16 state dict (.pth)")
-    e.add_argument("--lpips-linear-weights", default=None, help="local LPIPS vgg.pth linear layers")
+    e.add_argument(
+        "--lpips-weights",
+        default=None,
+        help="local torchvision VGG16 state dict (.pth); none: LPIPS unavailable",
+    )
+    e.add_argument(
+        "--lpips-linear-weights",
+        default=None,
+        help="LPIPS linear layers (.pth; default: the ones shipped in the lpips package)",
+    )
     e.add_argument("--no-progress", action="store_true", help="no progress bar")
     e.set_defaults(func=_eval)
 

@@ -128,7 +128,7 @@ class EvalConfig:
     stats_batches: int = 16  # training batches used for the exposure and the constant-colour baseline
     lpips_weights: str = ""  # local path of torchvision VGG16 weights (.pth); empty -> LPIPS unavailable
     lpips_linear_weights: str = (
-        ""  # local path of the LPIPS linear-layer weights (vgg.pth of the lpips package)
+        ""  # optional LPIPS linear layers (.pth); empty -> the v0.1 vgg.pth shipped in the lpips package
     )
     max_images: int = 0  # 0: every test image
 

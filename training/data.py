@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from lightstage.cameras import PinholeCamera
+from lightstage.capture.layout import FrameId
 
 BATCH_KEYS = ("origins", "directions", "light_positions", "light_directions", "rgb", "saturated", "zone")
 
@@ -25,10 +26,21 @@ class BatchSource(Protocol):
 
 @dataclass
 class TestImage:
-    """One evaluation image: a pinhole camera, the unit light direction and the linear HDR target (H, W, 3)."""
+    """One evaluation image: a pinhole camera, the unit light direction and the linear HDR target (H, W, 3);
+    `mask`: (H, W) foreground (metrics score the target as 0 outside it; None: no mask, every pixel);
+    `frame`: the capture frame it is (None for synthetic images), so a noise-free render can be found."""
 
     name: str
     camera: PinholeCamera
     light_direction: np.ndarray
     target: np.ndarray
     saturated: np.ndarray | None = None
+    mask: np.ndarray | None = None
+    frame: FrameId | None = None
+
+    @property
+    def masked_target(self) -> np.ndarray:
+        """The target with 0 outside the mask (what evaluation scores against)."""
+        if self.mask is None:
+            return self.target
+        return np.where(self.mask[..., None], self.target, 0).astype(self.target.dtype)

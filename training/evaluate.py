@@ -1,5 +1,11 @@
-"""Evaluation: render every test image in chunks, score PSNR/SSIM (and LPIPS-VGG when its weights are local) on
-the project tonemap, beside a constant-colour baseline, and write reports/eval.json plus side-by-side PNGs.
+"""Evaluation: render every test image in chunks and score it (training/metrics.py) beside a constant-colour
+baseline and the ceiling (training/ceiling.py); write reports/eval.json and labelled side-by-side PNGs.
+
+Keys of every per-image row and of `mean` (means over images; None where no image has the figure):
+`psnr`, `ssim`, `lpips` against the target with 0 outside the foreground mask, in the project tonemap (the
+headline figures); the same with `_full` (every pixel of the raw target) and `_paper` (the paper code's
+convention, sRGB(log(1 + hdr)), masked); `baseline_*` for the constant colour and `ceiling_*` for a perfect
+prediction (noise-free render; simulated captures only). LPIPS is None unless its backbone weights are local.
 
 Exposure rule: one exposure per capture, chosen from the training targets (the 99th percentile of foreground
 luminance maps to 1, `lightstage.tonemap.auto_exposure`), stored in the checkpoint and used for every image.
@@ -21,9 +27,10 @@ from lightstage.atomic import write_json_atomic
 from lightstage.cameras import PinholeCamera, camera_rays
 from lightstage.errors import LightstageError
 from lightstage.tonemap import tonemap, tonemap_u8
+from lightstage.training.ceiling import CleanRenders
 from lightstage.training.config import EvalConfig
 from lightstage.training.data import TestImage
-from lightstage.training.metrics import image_metrics
+from lightstage.training.metrics import CONVENTIONS, ceiling_scores, scores
 from lightstage.training.model import RelightModel
 from lightstage.workdir import WorkDir
 
@@ -50,12 +57,18 @@ def render_image(
 def side_by_side(
     pred: np.ndarray, target: np.ndarray, exposure: float, error_gain: float = 4.0
 ) -> np.ndarray:
-    """uint8 (H, 3W, 3): prediction | target | error heat map (|tonemapped difference| x gain, inferno)."""
+    """uint8 (H, 3W, 3): prediction | target | error heat map (|tonemapped difference| x gain, inferno).
+    Evaluation passes the masked target (what it scores against)."""
     import matplotlib
 
     err = np.abs(tonemap(pred, exposure) - tonemap(target, exposure)).mean(-1) * error_gain
     heat = (matplotlib.colormaps["inferno"](np.clip(err, 0, 1))[..., :3] * 255).round().astype(np.uint8)
     return np.concatenate([tonemap_u8(pred, exposure), tonemap_u8(target, exposure), heat], axis=1)
+
+
+def _mean(rows: list[dict[str, Any]], key: str) -> float | None:
+    vals = [r[key] for r in rows if isinstance(r.get(key), int | float)]
+    return float(np.mean(vals)) if vals else None
 
 
 def evaluate_images(
@@ -68,35 +81,46 @@ def evaluate_images(
     lpips_fn=None,
     progress: bool = False,
     total: int | None = None,
+    clean: CleanRenders | None = None,
 ) -> dict[str, Any]:
-    """Per-image and mean PSNR/SSIM(/LPIPS) of the model and of the constant baseline; PNGs into out_dir."""
+    """Per-image and mean metrics (module docstring) of the model, the constant baseline and, where `clean`
+    has the frame's noise-free render, the ceiling; prediction | masked target | error PNGs into out_dir."""
     from lightstage.training.trainer import _write_png
 
     rows = []
     for img in tqdm(images, total=total, desc="eval", disable=not progress, unit="img"):
         t0 = time.perf_counter()
         pred = render_image(model, img.camera, img.light_direction, chunk)
-        row: dict[str, Any] = {"name": img.name, **image_metrics(pred, img.target, exposure)}
+        row: dict[str, Any] = {"name": img.name, **scores(pred, img.target, img.mask, exposure, lpips_fn)}
         base = np.broadcast_to(np.asarray(baseline_rgb, np.float32), img.target.shape)
-        bm = image_metrics(base, img.target, exposure)
-        row.update(baseline_psnr=bm["psnr"], baseline_ssim=bm["ssim"])
-        row["lpips"] = (
-            float(lpips_fn(tonemap(pred, exposure), tonemap(img.target, exposure))) if lpips_fn else None
-        )
+        for k, v in scores(base, img.target, img.mask, exposure).items():
+            if not k.startswith("lpips"):
+                row[f"baseline_{k}"] = v
+        ref = clean.get(img.frame, (img.camera.width, img.camera.height)) if clean is not None else None
+        perfect = ceiling_scores(ref, img.target, img.mask, exposure, lpips_fn) if ref is not None else {}
+        row.update({f"ceiling_{k}": perfect.get(k) for k in scores_keys()})
+        row["masked"] = img.mask is not None
         row["seconds"] = time.perf_counter() - t0
         if out_dir is not None:
-            _write_png(Path(out_dir) / f"{img.name}.png", side_by_side(pred, img.target, exposure))
+            _write_png(Path(out_dir) / f"{img.name}.png", side_by_side(pred, img.masked_target, exposure))
         rows.append(row)
-    keys = ("psnr", "ssim", "baseline_psnr", "baseline_ssim") + (("lpips",) if lpips_fn else ())
-    mean = {k: float(np.mean([r[k] for r in rows])) if rows else None for k in keys}
+    keys = [k for k in (rows[0] if rows else {}) if k not in ("name", "masked", "seconds")]
     return {
         "images": rows,
-        "mean": mean,
+        "mean": {k: _mean(rows, k) for k in keys},
         "count": len(rows),
+        "masked_count": sum(r["masked"] for r in rows),
+        "ceiling_count": sum(r["ceiling_psnr"] is not None for r in rows),
         "exposure": exposure,
         "baseline_rgb": baseline_rgb,
         "lpips": "vgg" if lpips_fn else "unavailable",
+        "conventions": {f"<metric>{k}": v for k, v in CONVENTIONS.items()},
     }
+
+
+def scores_keys() -> list[str]:
+    """The metric keys of one convention set: psnr, ssim, lpips with every CONVENTIONS suffix."""
+    return [f"{m}{s}" for s in CONVENTIONS for m in ("psnr", "ssim", "lpips")]
 
 
 def run_eval(
@@ -117,6 +141,7 @@ def run_eval(
     trained = load_trained(work, checkpoint, device)
     cfg = config if config is not None else trained.config.eval
     lpips_fn, lpips_note = lpips_or_none(cfg.lpips_weights, cfg.lpips_linear_weights, device)
+    clean, ceiling_note = CleanRenders.find(work)
     total = count_test_images(work)
     if total == 0:
         raise LightstageError(f"{work.shards_dir / 'test'}: no test images (run lightstage shard WORK)")
@@ -132,13 +157,21 @@ def run_eval(
         lpips_fn,
         progress,
         min(limit, total),
+        clean,
     )
+    if clean is not None and result["ceiling_count"] < result["count"]:
+        ceiling_note += (
+            f"; {result['count'] - result['ceiling_count']} test image(s) have none (ceiling_* None there)"
+        )
     result.update(
         stage="eval",
         checkpoint_step=trained.step,
         seconds=time.perf_counter() - t0,
         lpips_note=lpips_note,
-        tonemap="sRGB(clip(exposure * hdr))",
+        ceiling=ceiling_note,
+        mask="the test image's foreground mask (shards/test/*.npz `mask`, from preprocess); target = 0 outside",
+        tonemap="sRGB(clip(exposure * hdr)); `_paper` keys: sRGB(clip(log(1 + hdr), 0, 1))",
+        ssim="Gaussian 11x11 window, sigma 1.5 (skimage gaussian_weights, population covariance)",
         device=str(device),
     )
     write_json_atomic(work.report("eval"), result)

@@ -1,12 +1,30 @@
-"""Image metrics on the project's one tonemap (lightstage.tonemap): PSNR, SSIM (scikit-image's reference
-implementation) and LPIPS-VGG only when its weights are available locally."""
+"""Image metrics, in one place: PSNR, SSIM (the field's: 11x11 Gaussian window, sigma 1.5, Wang et al. 2004,
+through scikit-image) and LPIPS (training/lpips.py, only when its backbone weights are local), scored in
+three conventions (CONVENTIONS) on the project's tonemap (lightstage.tonemap) or the paper code's.
+
+A test image's target outside its foreground mask is set to 0 before scoring (as the paper's code does and as
+the training targets are); the prediction is scored as rendered. `full` keeps every pixel of the raw target.
+"""
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 from skimage.metrics import structural_similarity
 
-from lightstage.tonemap import tonemap
+from lightstage.tonemap import paper_tonemap, tonemap
+
+SSIM_SIGMA = 1.5  # Gaussian window; scikit-image truncates at 3.5 sigma -> radius 5 -> 11 x 11
+SSIM_WINDOW = 11
+
+# key suffix -> what is compared (prediction vs target), in [0, 1] after the named tonemap
+CONVENTIONS = {
+    "": "masked, our tonemap: tonemap(pred) vs tonemap(target * mask); tonemap = sRGB(clip(exposure * hdr))",
+    "_full": "full frame, our tonemap: tonemap(pred) vs tonemap(target), every pixel of the raw target",
+    "_paper": "masked, the paper code's convention: paper_tonemap(pred) vs paper_tonemap(target * mask); "
+    "paper_tonemap = sRGB(clip(log(1 + hdr), 0, 1)), no exposure",
+}
 
 
 def psnr(pred: np.ndarray, target: np.ndarray, data_range: float = 1.0) -> float:
@@ -16,11 +34,75 @@ def psnr(pred: np.ndarray, target: np.ndarray, data_range: float = 1.0) -> float
 
 
 def ssim(pred: np.ndarray, target: np.ndarray) -> float:
-    """skimage structural_similarity on [0, 1] RGB images (7x7 uniform window, channels averaged)."""
-    return float(structural_similarity(pred, target, channel_axis=-1, data_range=1.0))
+    """SSIM of [0, 1] RGB images as NeRF/3DGS papers report it: Gaussian 11x11 window (sigma 1.5), population
+    covariances, K1 0.01, K2 0.03, the mean over the valid (unpadded) window positions, channels averaged."""
+    return float(
+        structural_similarity(
+            np.asarray(pred, np.float64),
+            np.asarray(target, np.float64),
+            gaussian_weights=True,
+            sigma=SSIM_SIGMA,
+            use_sample_covariance=False,
+            data_range=1.0,
+            channel_axis=-1,
+        )
+    )
 
 
 def image_metrics(pred_hdr: np.ndarray, target_hdr: np.ndarray, exposure: float) -> dict[str, float]:
-    """PSNR and SSIM of two linear HDR images after tonemap(exposure)."""
+    """PSNR and SSIM of two linear HDR images after tonemap(exposure) (no mask applied here)."""
     p, t = tonemap(pred_hdr, exposure), tonemap(target_hdr, exposure)
     return {"psnr": psnr(p, t), "ssim": ssim(p, t)}
+
+
+def masked(target: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+    """The target with 0 outside the (H, W) foreground mask (unchanged without a mask)."""
+    if mask is None:
+        return np.asarray(target)
+    return np.where(np.asarray(mask, bool)[..., None], target, 0).astype(np.asarray(target).dtype)
+
+
+def convention_images(
+    pred: np.ndarray,
+    target: np.ndarray,
+    mask: np.ndarray | None,
+    exposure: float,
+    pred_full: np.ndarray | None = None,
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """CONVENTIONS suffix -> (prediction, target) in [0, 1]. `pred_full`: the prediction scored in the full-frame
+    convention (default `pred`; the ceiling scores the unmasked clean render there)."""
+    tm = masked(target, mask)
+    return {
+        "": (tonemap(pred, exposure), tonemap(tm, exposure)),
+        "_full": (tonemap(pred if pred_full is None else pred_full, exposure), tonemap(target, exposure)),
+        "_paper": (paper_tonemap(pred), paper_tonemap(tm)),
+    }
+
+
+def scores(
+    pred: np.ndarray,
+    target: np.ndarray,
+    mask: np.ndarray | None,
+    exposure: float,
+    lpips_fn: Callable[[np.ndarray, np.ndarray], float] | None = None,
+    pred_full: np.ndarray | None = None,
+) -> dict[str, float | None]:
+    """psnr/ssim/lpips with every CONVENTIONS suffix (lpips None without lpips_fn) of linear HDR images."""
+    out: dict[str, float | None] = {}
+    for suffix, (p, t) in convention_images(pred, target, mask, exposure, pred_full).items():
+        out[f"psnr{suffix}"] = psnr(p, t)
+        out[f"ssim{suffix}"] = ssim(p, t)
+        out[f"lpips{suffix}"] = float(lpips_fn(p, t)) if lpips_fn is not None else None
+    return out
+
+
+def ceiling_scores(
+    clean: np.ndarray,
+    target: np.ndarray,
+    mask: np.ndarray | None,
+    exposure: float,
+    lpips_fn: Callable[[np.ndarray, np.ndarray], float] | None = None,
+) -> dict[str, float | None]:
+    """What a perfect prediction scores: the noise-free render of the frame, 0 outside the mask where the
+    target is masked (the best a model trained on masked targets can do), the whole render in `full`."""
+    return scores(masked(clean, mask), target, mask, exposure, lpips_fn, pred_full=clean)
