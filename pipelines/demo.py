@@ -233,6 +233,142 @@ def _metrics_table(ev: dict[str, Any]) -> list[str]:
     return lines if found else ["(no metrics found in reports/eval.json)"]
 
 
+# The rows of the metrics table: key suffix -> how the figures are scored (training/metrics.py CONVENTIONS).
+SCORINGS = (
+    ("", "masked, our tonemap"),
+    ("_full", "full frame, our tonemap"),
+    ("_paper", "masked, paper code's sRGB(log(1 + hdr))"),
+)
+
+
+def _fmt(v: Any, digits: int) -> str:
+    return f"{v:.{digits}f}" if isinstance(v, int | float) and not isinstance(v, bool) else "n/a"
+
+
+def _eval_table(ev: dict[str, Any]) -> list[str]:
+    """Model, ceiling and baseline per scoring convention (eval.json with `conventions`), with the notes."""
+    mean = ev.get("mean", {})
+    lines = [
+        "| scoring | PSNR (dB) | SSIM | LPIPS | ceiling PSNR | ceiling SSIM | ceiling LPIPS | baseline PSNR |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for suffix, what in SCORINGS:
+        lines.append(
+            f"| {what} | {_fmt(mean.get('psnr' + suffix), 2)} | {_fmt(mean.get('ssim' + suffix), 4)} | "
+            f"{_fmt(mean.get('lpips' + suffix), 4)} | {_fmt(mean.get('ceiling_psnr' + suffix), 2)} | "
+            f"{_fmt(mean.get('ceiling_ssim' + suffix), 4)} | {_fmt(mean.get('ceiling_lpips' + suffix), 4)} | "
+            f"{_fmt(mean.get('baseline_psnr' + suffix), 2)} |"
+        )
+    lines += [
+        "",
+        f"Means over {ev.get('count', '?')} test images ({ev.get('masked_count', '?')} with a foreground mask; "
+        "outside it the target is 0, as in training and the paper's code). The ceiling is what a perfect "
+        f"prediction scores on the same images ({ev.get('ceiling_count', 0)} of them): {ev.get('ceiling', 'n/a')}. "
+        f"LPIPS: {ev.get('lpips_note', ev.get('lpips', 'n/a'))}. SSIM: {ev.get('ssim', 'n/a')}. The baseline "
+        "predicts the mean training colour everywhere. Definitions: docs/model.md (Evaluation).",
+    ]
+    return lines
+
+
+PANEL_HEIGHT = 160
+COLUMNS = ("prediction", "ground truth (masked)", "error (|difference| x 4)")
+
+
+def _text_strip(width: int, texts: list[tuple[int, str]], height: int = 22) -> np.ndarray:
+    """A white (height, width, 3) strip with black text at the given x offsets (cv2.putText)."""
+    import cv2
+
+    strip = np.full((height, width, 3), 255, np.uint8)
+    for x, text in texts:
+        cv2.putText(
+            strip, text, (x + 4, height - 7), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA
+        )
+    return strip
+
+
+def prediction_grid(rows: list[tuple[np.ndarray, str]]) -> np.ndarray:
+    """Labelled grid of evaluation PNGs (each prediction | masked target | error side by side): a header with
+    the column names, then per row a caption line (name, masked PSNR) above the panels."""
+    import cv2
+
+    tiles = []
+    for img, caption in rows:
+        h, w = img.shape[:2]
+        scale = PANEL_HEIGHT / h
+        interp = cv2.INTER_NEAREST if scale > 1 else cv2.INTER_AREA  # enlarged pixels stay pixels
+        tiles.append(
+            (cv2.resize(img, (max(1, round(w * scale)), PANEL_HEIGHT), interpolation=interp), caption)
+        )
+    width = max(t.shape[1] for t, _ in tiles)
+    out = [_text_strip(width, [(k * tiles[0][0].shape[1] // 3, c) for k, c in enumerate(COLUMNS)], 26)]
+    for tile, caption in tiles:
+        tile = np.pad(tile, ((0, 0), (0, width - tile.shape[1]), (0, 0)), constant_values=255)
+        out += [_text_strip(width, [(0, caption)]), tile, np.full((4, width, 3), 255, np.uint8)]
+    return np.concatenate(out, axis=0)
+
+
+def _prediction_rows(work: WorkDir, ev: dict[str, Any]) -> list[tuple[Path, str]]:
+    """(eval PNG, caption) of the first test images, with their masked and ceiling PSNR from eval.json."""
+    rows = []
+    for r in ev.get("images", [])[:MAX_PREDICTIONS_SHOWN]:
+        png = work.eval_dir / f"{r.get('name')}.png"
+        if png.is_file():
+            cap = f"{r['name']}: masked PSNR {_fmt(r.get('psnr'), 2)} dB"
+            if isinstance(r.get("ceiling_psnr"), int | float):
+                cap += f" (ceiling {r['ceiling_psnr']:.2f})"
+            rows.append((png, cap + f", full frame {_fmt(r.get('psnr_full'), 2)} dB"))
+    if not rows:  # an eval.json without per-image rows: the PNGs alone
+        rows = [(p, p.stem) for p in sorted(work.eval_dir.rglob("*.png"))[:MAX_PREDICTIONS_SHOWN]]
+    return rows
+
+
+def psnr_curve(work: WorkDir, ev: dict[str, Any], path: Path) -> bool:
+    """report/psnr_curve.png: the periodic masked test PSNR logged during training (train/log.json) against
+    the step, the ceiling on the same images as a horizontal line, the final evaluation as a point."""
+    evals = _load_json(work.train_dir / "log.json").get("eval", [])
+    evals = [e for e in evals if isinstance(e, dict) and isinstance(e.get("psnr"), int | float)]
+    if not evals:
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from lightstage.atomic import atomic_path
+
+    fig, ax = plt.subplots(figsize=(7, 4), dpi=110)
+    steps = [int(e["step"]) for e in evals]
+    n = len(evals[-1].get("images", [])) or None
+    ax.plot(
+        steps, [e["psnr"] for e in evals], "o-", label=f"masked test PSNR ({n or '?'} image(s), periodic)"
+    )
+    if all(isinstance(e.get("psnr_full"), int | float) for e in evals):
+        ax.plot(steps, [e["psnr_full"] for e in evals], "--", color="grey", label="same, full frame")
+    rows = {r.get("name"): r for r in ev.get("images", [])}
+    names = evals[-1].get("images") or list(rows)  # logs from before the names were kept: every test image
+    ceil = [rows[k].get("ceiling_psnr") for k in names if k in rows]
+    if ceil and all(isinstance(c, int | float) for c in ceil) and len(ceil) == len(names):
+        same = "same images" if evals[-1].get("images") else "all test images"
+        ax.axhline(float(np.mean(ceil)), color="tab:red", label=f"ceiling: perfect prediction, {same}")
+    else:
+        ax.text(0.02, 0.95, f"ceiling: {ev.get('ceiling', 'unavailable')}"[:90], transform=ax.transAxes,
+                fontsize=7, va="top")  # fmt: skip
+    final = ev.get("mean", {}).get("psnr")
+    if isinstance(final, int | float) and ev.get("checkpoint_step") is not None:
+        ax.plot([ev["checkpoint_step"]], [final], "s", color="black",
+                label=f"final evaluation, all {ev.get('count', '?')} test images")  # fmt: skip
+    ax.set_xlabel("training step")
+    ax.set_ylabel("masked test PSNR (dB), our tonemap")
+    ax.set_title("Test PSNR over training")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="best")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return True
+
+
 def _calibration_table(cal: dict[str, Any]) -> list[str]:
     """Calibration errors against the simulator's ground truth, and what observed the lights."""
     gt, sfm = cal.get("ground_truth"), cal.get("sfm", {})
@@ -316,18 +452,25 @@ def write_report(
         lines.append("(calibration wrote no layout.png)")
     lines += _calibration_table(_load_json(work.report("calibration")))
 
-    preds = sorted(p for p in work.eval_dir.rglob("*.png"))[:MAX_PREDICTIONS_SHOWN]
-    lines += ["", "## Test predictions (prediction | ground truth | error)", ""]
+    ev = _load_json(work.report("eval"))
+    preds = [(p, cap, _read_png(p)) for p, cap in _prediction_rows(work, ev)]
+    preds = [(p, cap, t) for p, cap, t in preds if t is not None]
+    lines += ["", "## Test predictions (prediction | ground truth (masked) | error)", ""]
     if preds:
-        tiles = [t for t in (_read_png(p) for p in preds) if t is not None]
-        write_image(pics / "predictions.png", montage(tiles, columns=1, height=160))
+        write_image(pics / "predictions.png", prediction_grid([(t, cap) for _, cap, t in preds]))
         lines.append("![predictions](report/predictions.png)")
-        lines += [f"- `{p.relative_to(work.root)}`" for p in preds]
+        lines += [f"- `{p.relative_to(work.root)}`: {cap}" for p, cap, _ in preds]
     else:
         lines.append("(eval wrote no PNGs)")
 
+    lines += ["", "## Test PSNR over training", ""]
+    if psnr_curve(work, ev, pics / "psnr_curve.png"):
+        lines.append("![test PSNR over training](report/psnr_curve.png)")
+    else:
+        lines.append("(training logged no periodic evaluation: train/log.json has no `eval` entries)")
+
     lines += ["", "## Metrics (test split)", ""]
-    lines += _metrics_table(_load_json(work.report("eval")))
+    lines += _eval_table(ev) if "conventions" in ev else _metrics_table(ev)
 
     lines += ["", "## Environment-map relighting", ""]
     relit_pngs = sorted((work.root / "relight").glob("*.png"))

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lightstage.capture.frames import read_image as read_png
 from lightstage.capture.frames import write_image
 from lightstage.pipelines.demo import montage, pick_envmap, sky_envmap, write_report
 from lightstage.workdir import WorkDir
@@ -72,3 +73,51 @@ def test_montage_tiles_different_sizes() -> None:
     b = np.zeros((30, 10, 3), np.uint8)
     m = montage([a, b, a], columns=2, height=20)
     assert m.ndim == 3 and m.shape[0] == 2 * 24
+
+
+def test_report_shows_the_psnr_curve_the_ceiling_and_labelled_predictions(tmp_path: Path) -> None:
+    from lightstage.pipelines.demo import COLUMNS, prediction_grid
+
+    work = WorkDir.at(tmp_path / "work")
+    names = ["000_cam19_003", "040_cam19_003", "080_cam18_003"]
+    rows = []
+    for k, name in enumerate(names):
+        write_image(work.eval_dir / f"{name}.png", np.full((24, 96, 3), 60 * k, np.uint8))
+        rows.append({"name": name, "psnr": 25.0 + k, "psnr_full": 22.0 + k, "ceiling_psnr": 40.0 + k})
+    mean = {"psnr": 26.0, "ssim": 0.9, "ceiling_psnr": 41.0, "ceiling_ssim": 0.99, "baseline_psnr": 12.0}
+    mean.update(psnr_full=23.0, psnr_paper=30.0, ceiling_psnr_full=33.0, lpips=None)
+    work.report("eval").parent.mkdir(parents=True, exist_ok=True)
+    work.report("eval").write_text(
+        json.dumps(
+            {
+                "images": rows,
+                "mean": mean,
+                "count": 3,
+                "masked_count": 3,
+                "ceiling_count": 3,
+                "ceiling": "noise-free renders of the simulated capture",
+                "conventions": {"<metric>": "masked"},
+                "checkpoint_step": 40,
+                "lpips_note": "unavailable: set eval.lpips_weights",
+            }
+        )
+    )
+    evals = [
+        {"step": s, "psnr": 20.0 + s / 10, "psnr_full": 19.0, "images": names[:2]} for s in (10, 20, 30, 40)
+    ]
+    work.train_dir.mkdir(parents=True)
+    (work.train_dir / "log.json").write_text(json.dumps({"train": [], "eval": evals}))
+    text = write_report(work, {}, {}, 60.0, "tiny (seed 0)").read_text()
+    assert "![test PSNR over training](report/psnr_curve.png)" in text
+    assert (work.root / "report" / "psnr_curve.png").is_file()
+    assert "| masked, our tonemap | 26.00 | 0.9000 | n/a | 41.00 | 0.9900 | n/a | 12.00 |" in text
+    assert (
+        "| full frame, our tonemap | 23.00 |" in text and "paper code's sRGB(log(1 + hdr)) | 30.00 |" in text
+    )
+    assert "000_cam19_003: masked PSNR 25.00 dB (ceiling 40.00)" in text
+    grid = read_png(work.root / "report" / "predictions.png")
+    assert grid.shape[1] == 160 * 4 and grid.shape[0] > 3 * 160  # panels enlarged to 160 px, captions between
+    assert len(COLUMNS) == 3
+    # captions are drawn: the strips above the panels are not blank
+    g = prediction_grid([(np.zeros((24, 96, 3), np.uint8), "a caption")])
+    assert (g[:26] < 128).any() and (g[26:48] < 128).any()
