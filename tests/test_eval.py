@@ -8,6 +8,7 @@ the constant baseline and the ceiling) and side-by-side PNGs; the TrainedModel i
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -16,6 +17,7 @@ from scipy.ndimage import gaussian_filter
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from lightstage.capture.frames import write_exr
+from lightstage.capture.presets import make_stage
 from lightstage.errors import LightstageError
 from lightstage.tonemap import paper_tonemap, srgb_encode, tonemap
 from lightstage.training import evaluate
@@ -278,6 +280,11 @@ def _write_simulated_test_split(tmp_path, src: SyntheticSphere, with_clean=(True
     (capture / "ground_truth").mkdir(parents=True)
     template = "ground_truth/clean/{group}/{camera}/{light:03d}.exr"
     (capture / "ground_truth" / "clean.json").write_text(json.dumps({"path_template": template}))
+    # unequal LEDs, as stage.yaml gives them: renders and raw frames carry them, processed frames are divided
+    stage = make_stage("stand-in", num_cameras=4, num_lights=len(with_clean), width=64, height=64)
+    gains = np.array([[1.0, 1.0, 1.0], [1.2, 0.9, 0.8], [0.7, 1.1, 1.0]])[: len(with_clean)]
+    lights = tuple(replace(lt, intensity=tuple(gains[lt.index])) for lt in stage.lights)
+    replace(stage, lights=lights).save(capture / "stage.yaml")
     work.root.mkdir(parents=True, exist_ok=True)
     work.capture_pointer.write_text(str(capture))
     folder = work.shards_dir / "test"
@@ -289,7 +296,7 @@ def _write_simulated_test_split(tmp_path, src: SyntheticSphere, with_clean=(True
         mask = clean.sum(-1) > 0
         noisy = np.maximum(clean + 0.03 * rng.normal(size=clean.shape), 0) + 0.05 * ~mask[..., None]
         if with_clean[k]:
-            raw = np.repeat(np.repeat(clean, 4, axis=0), 4, axis=1)
+            raw = np.repeat(np.repeat(clean, 4, axis=0), 4, axis=1) * gains[k].astype(np.float32)
             write_exr(capture / template.format(group="000", camera="cam03", light=k), raw, half=False)
         c = img.camera
         np.savez(

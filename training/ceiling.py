@@ -4,8 +4,9 @@ For a simulated capture the simulator writes noise-free renders of every frame o
 (CAPTURE/ground_truth/clean.json, `every_light_cameras`; capture/simulate.py): object + stand radiance, no
 background, bulbs, flare, noise or clipping. A perfect model predicts that render (0 outside the foreground
 mask, as it is trained), and scoring it against the raw target gives the ceiling, in every metric convention
-(training/metrics.py `ceiling_scores`). The render is brought to the test image's resolution with the same area
-downscale as preprocess and scaled by the capture's exposure_scale.
+(training/metrics.py `ceiling_scores`). The render is brought into the processed frames' units as preprocess
+brings the raw frames: the same area downscale to the test image's resolution, times the capture's
+exposure_scale, divided by its light's relative RGB intensity (stage.yaml).
 
 For a real capture no noise-free render exists: the ceiling is unavailable (the only perfect prediction there is
 the target itself, which scores inf).
@@ -32,13 +33,21 @@ REAL_CAPTURE = (
 class CleanRenders:
     """Noise-free renders of a simulated capture's frames, at a processed (downscaled) resolution."""
 
-    def __init__(self, capture: Path, template: str, exposure_scale: float = 1.0):
+    def __init__(
+        self,
+        capture: Path,
+        template: str,
+        exposure_scale: float = 1.0,
+        intensities: np.ndarray | None = None,
+    ):
         self.capture, self.template, self.exposure_scale = Path(capture), template, float(exposure_scale)
+        self.intensities = None if intensities is None else np.asarray(intensities, np.float64).reshape(-1, 3)
 
     @classmethod
     def find(cls, work: WorkDir) -> tuple[CleanRenders | None, str]:
         """(renders, note) for the capture WORK/capture.txt names; (None, "unavailable: why") without them."""
-        from lightstage.capture.layout import load_capture_info
+        from lightstage.capture.layout import CAPTURE_FILE, STAGE_FILE, load_capture_info
+        from lightstage.capture.stage import load_stage
         from lightstage.capture.validate import read_capture_pointer
 
         try:
@@ -52,13 +61,17 @@ class CleanRenders:
             template = str(json.loads(info.read_text())["path_template"])
         except (OSError, ValueError, KeyError, TypeError) as e:
             return None, f"unavailable: {info}: unreadable ({e})"
-        scale = 1.0
-        if (capture / "capture.yaml").is_file():
-            try:
-                scale = load_capture_info(capture / "capture.yaml").exposure_scale
-            except LightstageError as e:
-                return None, f"unavailable: {e}"
-        return cls(capture, template, scale), f"noise-free renders of the simulated capture ({info})"
+        scale, intensities = 1.0, None
+        try:
+            if (capture / CAPTURE_FILE).is_file():
+                scale = load_capture_info(capture / CAPTURE_FILE).exposure_scale
+            if (capture / STAGE_FILE).is_file():
+                intensities = load_stage(capture / STAGE_FILE).light_intensities()
+        except LightstageError as e:
+            return None, f"unavailable: {e}"
+        return cls(
+            capture, template, scale, intensities
+        ), f"noise-free renders of the simulated capture ({info})"
 
     def path(self, frame: FrameId) -> Path:
         return self.capture / self.template.format(group=frame.group, camera=frame.camera, light=frame.light)
@@ -81,4 +94,6 @@ class CleanRenders:
             img = downscale(img, float("inf"), factor=W // w).rgb
         if self.exposure_scale != 1.0:
             img *= np.float32(self.exposure_scale)
+        if self.intensities is not None:  # processed frames are divided by their light's RGB intensity
+            img /= self.intensities[frame.light].astype(np.float32)
         return img
