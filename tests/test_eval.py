@@ -21,6 +21,7 @@ from lightstage.capture.presets import make_stage
 from lightstage.errors import LightstageError
 from lightstage.tonemap import paper_tonemap, srgb_encode, tonemap
 from lightstage.training import evaluate
+from lightstage.training.config import EvalConfig
 from lightstage.training.evaluate import run_eval
 from lightstage.training.lpips import LPIPSVGG, lpips_or_none, vgg16_features
 from lightstage.training.metrics import ceiling_scores, image_metrics, psnr, scores, ssim
@@ -331,21 +332,32 @@ def test_masked_evaluation_of_a_perfect_prediction_scores_the_ceiling(tmp_path, 
     monkeypatch.setattr(
         evaluate, "render_image", lambda model, cam, light, chunk: perfect[tuple(np.round(light, 9))]
     )
-    run_eval(work, progress=False)
+    _fake_backbone(tmp_path / "vgg16_features.pth")  # LPIPS wiring only: a random backbone, not a real figure
+    run_eval(work, config=EvalConfig(lpips_weights=str(tmp_path / "vgg16_features.pth")), progress=False)
     ev = json.loads(work.report("eval").read_text())
     assert ev["count"] == 3 and ev["masked_count"] == 3 and ev["ceiling_count"] == 2
+    assert ev["lpips"] == "vgg" and np.isfinite(ev["mean"]["lpips_paper"])
     assert ev["ceiling"].startswith("noise-free renders") and "1 test image(s) have none" in ev["ceiling"]
     for row in ev["images"][:2]:
-        for key in ("psnr", "ssim", "psnr_paper", "ssim_paper", "psnr_full", "ssim_full"):
+        for key in (
+            "psnr",
+            "ssim",
+            "psnr_paper",
+            "ssim_paper",
+            "psnr_full",
+            "ssim_full",
+            "lpips",
+            "lpips_paper",
+        ):
             assert np.isfinite(row[key]) and row[key] == pytest.approx(row[f"ceiling_{key}"], rel=1e-6), key
         assert row["psnr_full"] < row["psnr"]  # the target's background counts in the full frame only
     assert all(v is None for k, v in ev["images"][2].items() if k.startswith("ceiling_"))
     assert ev["mean"]["ceiling_psnr"] == pytest.approx(np.mean([r["psnr"] for r in ev["images"][:2]]))
-    assert ev["mean"]["lpips"] is None and ev["lpips"] == "unavailable"
 
     (tmp_path / "capture" / "ground_truth" / "clean.json").unlink()  # now it looks like a real capture
     run_eval(work, progress=False)
     ev = json.loads(work.report("eval").read_text())
+    assert ev["mean"]["lpips"] is None and ev["lpips"] == "unavailable"
     assert ev["ceiling_count"] == 0 and ev["mean"]["ceiling_psnr"] is None
     assert ev["ceiling"].startswith("unavailable") and "scores inf" in ev["ceiling"]
 
