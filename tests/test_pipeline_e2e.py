@@ -61,6 +61,9 @@ def test_run_tiny_capture_through_eval_with_a_corrupt_frame(tiny_capture: Path, 
     assert rel in w.report("preprocess").read_text()
     ev = json.loads(w.report("eval").read_text())
     assert ev  # eval wrote its metrics
+    # scored against the masked targets, with the ceiling from the simulator's noise-free test frames
+    assert ev["masked_count"] == ev["ceiling_count"] == ev["count"] == 2
+    assert ev["mean"]["psnr"] < ev["mean"]["ceiling_psnr"] < float("inf")
     assert any(w.eval_dir.rglob("*.png"))
 
     # A rerun with nothing changed skips every stage.
