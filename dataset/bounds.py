@@ -63,18 +63,20 @@ class BoundsConfig:
 
 @dataclass(frozen=True)
 class Bounds:
-    """The object's axis-aligned box (world, metres) and the unit-cube normalisation."""
+    """The object's axis-aligned box (world, metres), the unit-cube normalisation, and the carved visual hull
+    (n, n, n) bool voxels spanning the box (None when not stored), a prior for the model's occupancy grid."""
 
     box_min: np.ndarray
     box_max: np.ndarray
     centre: np.ndarray
     scale: float
+    hull: np.ndarray | None = None
 
     def normalize(self, x: np.ndarray) -> np.ndarray:
         return (np.asarray(x) - self.centre) / self.scale
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        d = {
             "format_version": BOUNDS_FORMAT_VERSION,
             "centre": [float(x) for x in self.centre],
             "scale": float(self.scale),
@@ -82,6 +84,30 @@ class Bounds:
             "box_max": [float(x) for x in self.box_max],
             "convention": "x_norm = (x_world - centre) / scale; the box lies inside [-1, 1]^3 with the margin",
         }
+        if self.hull is not None:
+            d["hull"] = encode_hull(self.hull)
+        return d
+
+
+def encode_hull(hull: np.ndarray) -> dict[str, Any]:
+    """JSON form of a bool voxel grid over the box: its shape and np.packbits of the C-order voxels, base64."""
+    import base64
+
+    bits = base64.b64encode(np.packbits(hull.astype(bool).ravel()).tobytes()).decode("ascii")
+    return {
+        "shape": list(hull.shape),
+        "order": "x, y, z index (C order); voxels tile box_min..box_max",
+        "bits": bits,
+    }
+
+
+def decode_hull(d: dict[str, Any]) -> np.ndarray:
+    """The bool voxel grid of `encode_hull`."""
+    import base64
+
+    shape = tuple(int(n) for n in d["shape"])
+    raw = np.frombuffer(base64.b64decode(d["bits"]), np.uint8)
+    return np.unpackbits(raw)[: int(np.prod(shape))].reshape(shape).astype(bool)
 
 
 def load_bounds(path: str | Path) -> Bounds:
@@ -89,8 +115,9 @@ def load_bounds(path: str | Path) -> Bounds:
     path = Path(path)
     try:
         d = json.loads(path.read_text())
+        hull = decode_hull(d["hull"]) if "hull" in d else None
         return Bounds(
-            np.array(d["box_min"]), np.array(d["box_max"]), np.array(d["centre"]), float(d["scale"])
+            np.array(d["box_min"]), np.array(d["box_max"]), np.array(d["centre"]), float(d["scale"]), hull
         )
     except OSError as e:
         raise LightstageError(f"{path}: cannot read bounds ({e.strerror}); run `lightstage bounds`") from None
@@ -200,9 +227,11 @@ def estimate_bounds(views: list[_View], cfg: BoundsConfig) -> tuple[Bounds, dict
             lo, hi = new_lo - step, new_hi + step
         else:
             lo, hi = new_lo, new_hi
+            lo_i, hi_i = idx.min(0), idx.max(0) + 1
+            hull = occ[lo_i[0] : hi_i[0], lo_i[1] : hi_i[1], lo_i[2] : hi_i[2]]
     centre = 0.5 * (lo + hi)
     scale = float(np.max(0.5 * (hi - lo))) * (1.0 + cfg.margin)
-    return Bounds(lo, hi, centre, scale), info
+    return Bounds(lo, hi, centre, scale, hull), info
 
 
 def write_bounds_picture(path: Path, work: WorkDir, calib: Any, views: list[ViewId], bounds: Bounds) -> None:

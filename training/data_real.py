@@ -35,12 +35,18 @@ class ShardSource:
             self.work.shards_dir, self.batch_size, seed=self.seed, rank=rank, world_size=world_size
         )
 
-    def normalization(self) -> tuple[list[float], float, list[list[float]] | None]:
-        """(centre, scale, box) the shards were written with; box = [box_min, box_max] in world metres, or
-        None for shards without one (samples then fill the unit cube)."""
+    def normalization(self) -> dict:
+        """The scene frame the shards were written with: centre, scale, box ([box_min, box_max] in world metres
+        or None: samples then fill the unit cube) and hull (bool voxels tiling the box, or None)."""
+        from lightstage.dataset.bounds import decode_hull
+
         norm = self.dataset().manifest["normalization"]
-        box = [list(norm["box_min"]), list(norm["box_max"])] if "box_min" in norm else None
-        return list(norm["centre"]), float(norm["scale"]), box
+        return {
+            "centre": list(norm["centre"]),
+            "scale": float(norm["scale"]),
+            "box": [list(norm["box_min"]), list(norm["box_max"])] if "box_min" in norm else None,
+            "hull": torch.from_numpy(decode_hull(norm["hull"])) if "hull" in norm else None,
+        }
 
     def batches(
         self, start: int = 0, rank: int = 0, world_size: int = 1

@@ -21,24 +21,34 @@ CORNERS = torch.tensor([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in rang
 
 
 class _WeightedLookup(torch.autograd.Function):
-    """out[n, l] = sum_c w[n, l, c] * table[idx[n, l, c]]: a gather forward and one `index_add_` backward (on
-    CPU several times faster than the scatter of `F.embedding` or advanced indexing). No gradient flows to
-    the weights: sample positions are not optimised."""
+    """out[l, n] = sum_c w[c, l, n] * table[idx[c, l, n]] for a (rows, F) table, corners c first and samples
+    last so every elementwise op runs over long contiguous rows. Forward: one gather, of the rows as single
+    8-byte words when F * 4 == 8 (a 2-feature float32 row; ~10x faster than a 2-column index_select on CPU);
+    backward: one weighted `bincount` per feature (~4x faster than `index_add_` or the scatter of
+    `F.embedding`). No gradient flows to the weights: sample positions are not optimised."""
 
     @staticmethod
     def forward(ctx, table: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-        n, levels, corners = idx.shape
-        feats = table.index_select(0, idx.reshape(-1)).view(n, levels, corners, table.shape[1])
+        flat = idx.reshape(-1)
+        if table.dtype == torch.float32 and table.shape[1] == 2 and table.is_contiguous():
+            feats = table.view(torch.int64).view(-1).index_select(0, flat).view(torch.float32)
+        else:
+            feats = table.index_select(0, flat)
         ctx.save_for_backward(idx, w)
         ctx.rows = table.shape[0]
-        return torch.einsum("nlcf,nlc->nlf", feats, w)
+        return (feats.view(*idx.shape, table.shape[1]) * w[..., None]).sum(0)  # (L, N, F)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
         idx, w = ctx.saved_tensors
-        per_corner = (grad[:, :, None, :] * w[..., None]).reshape(-1, grad.shape[-1])
-        g = torch.zeros(ctx.rows, grad.shape[-1], dtype=grad.dtype, device=grad.device)
-        g.index_add_(0, idx.reshape(-1), per_corner)
+        flat = idx.reshape(-1)
+        g = torch.stack(
+            [
+                torch.bincount(flat, (w * grad[None, ..., f]).reshape(-1), ctx.rows).to(grad.dtype)
+                for f in range(grad.shape[-1])
+            ],
+            dim=1,
+        )
         return g, None, None
 
 
@@ -46,7 +56,8 @@ class HashGridEncoding(nn.Module):
     """(N, 3) points in [-1, 1]^3 -> (N, levels * features_per_level) interpolated hash-table features.
 
     All levels are looked up in one gather: the tables are one (levels * T, F) matrix, each level's indices
-    offset by level * T (`_WeightedLookup`)."""
+    offset by level * T (`_WeightedLookup`). Index and weight arithmetic runs on (levels, N) arrays, one per
+    corner, with the hash in int32 (see `forward`)."""
 
     def __init__(
         self, levels: int, features: int, log2_table_size: int, base_resolution: int, max_resolution: int
@@ -59,47 +70,40 @@ class HashGridEncoding(nn.Module):
         self.register_buffer("resolutions", torch.tensor(resolutions, dtype=torch.long), persistent=False)
         self.dense = [(r + 1) ** 3 <= self.table_size for r in resolutions]
         self.sizes = [min((r + 1) ** 3, self.table_size) for r in resolutions]
-        self.register_buffer("_dense", torch.tensor(self.dense), persistent=False)
-        self.register_buffer(
-            "_offsets", torch.arange(levels, dtype=torch.long) * self.table_size, persistent=False
-        )
         self.tables = nn.Parameter(torch.empty(levels, self.table_size, features).uniform_(-1e-4, 1e-4))
         self.output_dim = levels * features
+        if max(resolutions) + 1 >= 2**31 // self.table_size:
+            raise ValueError("hash grid: max_resolution * table size must stay below 2^31")
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        u = ((x.float() + 1.0) * 0.5).clamp(0.0, 1.0)
-        res = self.resolutions  # (L,)
-        pos = u[:, None, :] * res[None, :, None].float()  # (N, L, 3)
-        cell = torch.minimum(pos.long(), (res - 1)[None, :, None])  # floor (pos >= 0)
+        n = len(x)
+        u = ((x.float() + 1.0) * 0.5).clamp(0.0, 1.0).t()  # (3, N)
+        res = self.resolutions
+        pos = u[None] * res[:, None, None].float()  # (L, 3, N)
+        cell = torch.minimum(pos.long(), (res - 1)[:, None, None])  # floor (pos >= 0)
         frac = pos - cell
-        # Per axis, the two vertex coordinates of the cell: (N, L, 3, 2). Corner c = c0 + 2 c1 + 4 c2 combines
-        # them by broadcasting (z, y, x) -> (..., 2, 2, 2) -> 8, so no (N, L, 8, 3) tensor is formed.
-        vert = cell[..., None] + torch.arange(2, device=x.device)
-        n_dense = sum(self.dense)
-        parts = []
-        if n_dense:
-            stride = (res[:n_dense] + 1)[None, :, None]
-            v = vert[:, :n_dense]
-            parts.append(_corners(v[:, :, 0], v[:, :, 1] * stride, v[:, :, 2] * stride * stride, torch.add))
-        if n_dense < self.levels:
-            v = vert[:, n_dense:]
-            h = _corners(
-                v[:, :, 0] * PRIMES[0], v[:, :, 1] * PRIMES[1], v[:, :, 2] * PRIMES[2], torch.bitwise_xor
-            )
-            parts.append(h & (self.table_size - 1))  # == mod T (T is a power of two, the xor is >= 0)
-        idx = (torch.cat(parts, 1) if len(parts) > 1 else parts[0]) + self._offsets[
-            None, :, None
-        ]  # (N, L, 8)
-        wf = torch.stack([1.0 - frac, frac], -1)  # (N, L, 3, 2)
-        w = _corners(wf[:, :, 0], wf[:, :, 1], wf[:, :, 2], torch.mul)  # (N, L, 8)
-        out = _WeightedLookup.apply(self.tables.view(-1, self.features), idx, w)
-        return out.reshape(len(x), self.output_dim)
-
-
-def _corners(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor, op) -> torch.Tensor:
-    """(N, L, 8) op-combination of per-axis (N, L, 2) terms for the 8 cell corners in CORNERS order."""
-    xy = op(y[..., :, None], x[..., None, :])  # (N, L, 2[c1], 2[c0])
-    return op(z[..., :, None, None], xy[..., None, :, :]).flatten(-3)
+        nd = sum(self.dense)
+        idx = torch.empty(8, self.levels, n, dtype=torch.long, device=x.device)
+        if nd:  # dense levels: idx = sum_a (cell_a + c_a) * stride^a = base + per-corner constant
+            stride = (res[:nd] + 1)[:, None]
+            c = cell[:nd]
+            base = c[:, 0] + stride * (c[:, 1] + stride * c[:, 2])  # (nd, N)
+            steps = CORNERS.to(x.device) @ torch.stack([torch.ones_like(stride), stride, stride * stride], 1)
+            idx[:, :nd] = base[None] + steps.permute(1, 0, 2)  # (8, nd, N)
+        if nd < self.levels:
+            # Only the low log2(T) bits of the spatial hash are used, and (v * P) mod T = (v * (P mod T))
+            # mod T, so the products stay inside int32: the same indices as the 64-bit hash.
+            mask = self.table_size - 1
+            c = cell[nd:].int()
+            h = [[c[:, a] * (p & mask), (c[:, a] + 1) * (p & mask)] for a, p in enumerate(PRIMES)]
+            for k in range(8):
+                idx[k, nd:] = (h[0][k & 1] ^ h[1][(k >> 1) & 1] ^ h[2][(k >> 2) & 1]) & mask
+        idx += (torch.arange(self.levels, device=x.device) * self.table_size)[None, :, None]
+        wa = [(1.0 - frac[:, a], frac[:, a]) for a in range(3)]
+        wxy = [wa[0][k & 1] * wa[1][k >> 1] for k in range(4)]
+        w = torch.stack([wxy[k & 3] * wa[2][k >> 2] for k in range(8)])  # (8, L, N)
+        out = _WeightedLookup.apply(self.tables.view(-1, self.features), idx, w)  # (L, N, F)
+        return out.permute(1, 0, 2).reshape(n, self.output_dim)
 
 
 class HashGridField(nn.Module):
@@ -127,18 +131,27 @@ class HashGridField(nn.Module):
 
     def density(self, x: torch.Tensor) -> torch.Tensor:
         """(N,) density at normalised positions (N, 3)."""
-        raw = self.geo(self.encoding(x))[..., 0]
-        return density_activation(raw, self.cfg.density_activation, self.cfg.density_bias)
+        return self.geometry(x)[0]
+
+    def geometry(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(sigma (N,), geometry features (N, geo_features)) at normalised positions (N, 3): the light- and
+        view-independent stage."""
+        geo = self.geo(self.encoding(x))
+        return density_activation(geo[..., 0], self.cfg.density_activation, self.cfg.density_bias), geo[
+            ..., 1:
+        ]
+
+    def transfer(self, features: torch.Tensor, view: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
+        """(N, 3) transfer gradient h from geometry features and unit view / light directions (N, 3)."""
+        g = self.cfg.hashgrid
+        head_in = torch.cat(
+            [features, positional_encoding(view, g.dir_freqs), positional_encoding(light, g.light_freqs)], -1
+        )
+        return exp_head(self.head(head_in), self.cfg.h_max_exponent)
 
     def forward(
         self, x: torch.Tensor, view: torch.Tensor, light: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """(sigma (N,), h (N, 3)) at normalised positions x with unit view and light directions (N, 3)."""
-        g = self.cfg.hashgrid
-        geo = self.geo(self.encoding(x))
-        sigma = density_activation(geo[..., 0], self.cfg.density_activation, self.cfg.density_bias)
-        head_in = torch.cat(
-            [geo[..., 1:], positional_encoding(view, g.dir_freqs), positional_encoding(light, g.light_freqs)],
-            -1,
-        )
-        return sigma, exp_head(self.head(head_in), self.cfg.h_max_exponent)
+        sigma, features = self.geometry(x)
+        return sigma, self.transfer(features, view, light)

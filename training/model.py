@@ -14,7 +14,7 @@ from torch import nn
 from lightstage.training.config import ModelConfig
 from lightstage.training.hashgrid import HashGridField
 from lightstage.training.mlp_field import MLPField
-from lightstage.training.occupancy import OccupancyGrid, density_threshold
+from lightstage.training.occupancy import OccupancyGrid, density_threshold, hull_prior
 from lightstage.training.render import composite, volume_weights
 from lightstage.training.sampling import merge_edges, midpoints, ray_box, resample_edges, stratified_edges
 
@@ -34,8 +34,10 @@ class RelightModel(nn.Module):
         centre: torch.Tensor | list[float],
         scale: float,
         box: torch.Tensor | list | None = None,
+        hull: torch.Tensor | None = None,
     ):
-        """`box`: (2, 3) world min / max corners that samples are confined to (None: the whole unit cube)."""
+        """`box`: (2, 3) world min / max corners that samples are confined to (None: the whole unit cube);
+        `hull`: bool voxels tiling the box (the carved visual hull), the occupancy grid's starting prior."""
         super().__init__()
         self.cfg = cfg
         self.register_buffer("centre", torch.as_tensor(centre, dtype=torch.float32).reshape(3).clone())
@@ -52,6 +54,9 @@ class RelightModel(nn.Module):
             first_pass = cfg.n_coarse if cfg.n_coarse > 0 else cfg.n_fine
             threshold = density_threshold(cfg.occupancy.min_alpha, first_pass)
             self.occupancy = OccupancyGrid(cfg.occupancy.resolution, cfg.occupancy.decay, threshold)
+            if hull is not None and box is not None:
+                prior = hull_prior(torch.as_tensor(hull), self.box[0], self.box[1], cfg.occupancy.resolution)
+                self.occupancy.set_prior(prior)
 
     def normalise(self, points: torch.Tensor) -> torch.Tensor:
         """World points -> unit-cube coordinates."""
@@ -94,6 +99,8 @@ class RelightModel(nn.Module):
             keep = keep.clone()
             keep.view(-1)[0] = True
         R, S = t.shape
+        if self.cfg.min_weight > 0 and hasattr(field, "geometry"):
+            return self._march_two_stage(field, x, d, light, keep, delta)
         if bool(keep.all()):
             s, h = field(
                 x.reshape(-1, 3),
@@ -107,6 +114,30 @@ class RelightModel(nn.Module):
             sigma = torch.zeros(R, S, device=x.device, dtype=s.dtype).masked_scatter(keep, s)
             hh = torch.zeros(R, S, 3, device=x.device, dtype=h.dtype).masked_scatter(keep[..., None], h)
         w = volume_weights(sigma, delta)
+        return composite(w, hh), sigma, w
+
+    def _march_two_stage(
+        self,
+        field: nn.Module,
+        x: torch.Tensor,
+        d: torch.Tensor,
+        light: torch.Tensor,
+        keep: torch.Tensor,
+        delta: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Density and features at the kept samples, then the transfer stage only where the volume weight
+        exceeds cfg.min_weight (on a surface-like object a handful of samples per ray)."""
+        R, S = keep.shape
+        s, feat = field.geometry(x[keep])
+        sigma = torch.zeros(R, S, device=x.device, dtype=s.dtype).masked_scatter(keep, s)
+        w = volume_weights(sigma, delta)
+        active = keep & (w.detach() > self.cfg.min_weight)
+        if not bool(active.any()):  # one sample, so every parameter takes part (DDP needs it)
+            active = active.clone()
+            active.view(-1)[int(keep.view(-1).nonzero()[0])] = True
+        rows = active.nonzero(as_tuple=True)[0]
+        h = field.transfer(feat[active[keep]], d[rows], light[rows])
+        hh = torch.zeros(R, S, 3, device=x.device, dtype=h.dtype).masked_scatter(active[..., None], h)
         return composite(w, hh), sigma, w
 
     @torch.no_grad()

@@ -13,6 +13,8 @@ from collections.abc import Callable
 import torch
 from torch import nn
 
+PRIOR_FACTOR = 16.0  # prior cells stay occupied for log(16) / -log(decay) updates without density support
+
 
 class OccupancyGrid(nn.Module):
     """A res^3 density grid over [-1, 1]^3; everything counts as occupied until the first update."""
@@ -50,6 +52,14 @@ class OccupancyGrid(nn.Module):
         self.grid.copy_(torch.maximum(self.grid * self.decay, dens.reshape(r, r, r)))
         self.ready.fill_(True)
 
+    @torch.no_grad()
+    def set_prior(self, prior: torch.Tensor) -> None:
+        """Start from a known superset of the matter (e.g. the visual hull): cells outside it are empty from
+        step 0 (no all-occupied warm-up), cells inside it start `PRIOR_FACTOR` x the threshold and fade with
+        the decay once density updates begin."""
+        self.grid.copy_(prior.to(self.grid).float() * PRIOR_FACTOR * self.density_threshold)
+        self.ready.fill_(True)
+
     def occupied_fraction(self) -> float:
         return float((self.grid > self.density_threshold).float().mean()) if bool(self.ready) else 1.0
 
@@ -58,3 +68,24 @@ def density_threshold(min_alpha: float, n_samples: int) -> float:
     """Density whose alpha over the nominal step (cube diagonal / n_samples) equals min_alpha."""
     step = 2.0 * math.sqrt(3.0) / n_samples
     return -math.log(1.0 - min_alpha) / step
+
+
+def hull_prior(
+    hull: torch.Tensor, box_min: torch.Tensor, box_max: torch.Tensor, resolution: int, samples: int = 3
+) -> torch.Tensor:
+    """(res, res, res) bool: occupancy cells over [-1, 1]^3 that overlap the voxel hull (n0, n1, n2) tiling the
+    normalised box [box_min, box_max], dilated by one hull voxel; each cell is probed at samples^3 points."""
+    hull = hull.float()[None, None]
+    hull = torch.nn.functional.max_pool3d(hull, 3, stride=1, padding=1)[0, 0] > 0
+    n = torch.tensor(hull.shape, dtype=torch.float32)
+    sub = (torch.arange(samples, dtype=torch.float32) + 0.5) / samples
+    axis = (torch.arange(resolution, dtype=torch.float32)[:, None] + sub[None]).reshape(
+        -1
+    ) / resolution * 2 - 1
+    pts = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    rel = (pts - box_min) / (box_max - box_min) * n
+    inside = ((rel >= 0) & (rel < n)).all(-1)
+    ijk = rel.clamp(min=0).long().minimum((n - 1).long())
+    hit = inside & hull[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+    hit = hit.reshape(resolution, samples, resolution, samples, resolution, samples)
+    return hit.any(5).any(3).any(1)

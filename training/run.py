@@ -59,7 +59,7 @@ def run_train(
         source = ShardSource(
             work, config.optim.batch_rays // world, seed=config.seed, workers=config.loader_workers
         )
-        centre, scale, box = source.normalization()
+        scene = source.normalization()
         tests = []
         if config.eval.every and rank == 0:
             tests = [img for _, img in zip(range(config.eval.images), iter_test_images(work), strict=False)]
@@ -68,9 +68,10 @@ def run_train(
             config,
             source,
             work.train_dir,
-            centre,
-            scale,
-            box=box,
+            scene["centre"],
+            scene["scale"],
+            box=scene["box"],
+            hull=scene["hull"],
             device=dev,
             test_images=tests,
             progress=progress,
@@ -82,7 +83,7 @@ def run_train(
                 "config": config.to_dict(),
                 **summary,
                 "wall_seconds": time.perf_counter() - t0,
-                "bounds": {"centre": centre, "scale": scale},
+                "bounds": {"centre": scene["centre"], "scale": scene["scale"], "box": scene["box"]},
             }
             write_json_atomic(work.report("train"), report)
         return {k: summary[k] for k in ("steps", "final_loss", "rays_per_s", "checkpoint")}

@@ -86,6 +86,7 @@ def fit(
     scale: float,
     *,
     box: Sequence[Sequence[float]] | None = None,
+    hull: torch.Tensor | None = None,
     device: str | torch.device = "cpu",
     test_images: Sequence[TestImage] = (),
     progress: bool = True,
@@ -105,7 +106,7 @@ def fit(
     np.random.seed(cfg.seed + rank)  # noqa: NPY002 (seed the global RNG third-party code may use)
     random.seed(cfg.seed + rank)
 
-    model = RelightModel(cfg.model, centre, scale, box).to(device)
+    model = RelightModel(cfg.model, centre, scale, box, hull).to(device)
     opt = torch.optim.Adam(
         model.parameters(),
         lr=ocfg.lr,
