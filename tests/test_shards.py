@@ -304,3 +304,33 @@ def test_border_ring_enumerates_every_outside_pixel_once(size, border):
     assert n == (w + 2 * pad[0]) * (h + 2 * pad[1]) - w * h
     if border == 0 and w != h:
         assert (w + 2 * pad[0]) - (h + 2 * pad[1]) in (0, 1, -1)  # padded to (about) a square
+
+
+def test_default_sampling_covers_every_foreground_pixel_once(tmp_path):
+    """rays_per_image 0 (default): every mask pixel of every training frame is one foreground ray of the epoch,
+    with 3/4 as many band rays (inside the outer band) and 1/4 as many background rays."""
+    import cv2
+
+    work, _ = make_synthetic_work(tmp_path)
+    run_split(work, SplitConfig("paper"), progress=False)
+    run_shard(work, ShardConfig(rays_per_shard=4096, workers=1, border_px=4), progress=False)
+    m, shards = _all_rays(work)
+    rays = np.concatenate(shards)
+    views = [ViewId(*v.split("/")) for v in m["views"]]
+    frames = 0
+    for v_idx in np.unique(rays["view"]):
+        mask = cv2.imread(str(work.mask(views[v_idx])), cv2.IMREAD_UNCHANGED) > 0
+        zones = sampling_zones(mask, ShardConfig().band_fraction)
+        for light in np.unique(rays["light"][rays["view"] == v_idx]):
+            sel = rays[(rays["view"] == v_idx) & (rays["light"] == light)]
+            fg = sel[sel["zone"] == ZONE_FOREGROUND]["pixel"]
+            got = np.zeros_like(mask)
+            got[fg[:, 1], fg[:, 0]] = True
+            assert len(fg) == mask.sum() and (got == mask).all()
+            band = sel[sel["zone"] == ZONE_BAND]["pixel"]
+            assert (
+                len(band) == round(0.75 * mask.sum()) and (zones[band[:, 1], band[:, 0]] == ZONE_BAND).all()
+            )
+            assert (sel["zone"] == ZONE_BACKGROUND).sum() == round(0.25 * mask.sum())
+            frames += 1
+    assert frames == m["frames"]

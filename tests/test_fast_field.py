@@ -1,0 +1,106 @@
+"""The CPU-fast pieces of the hash-grid field: the vectorised encoding equals the per-level reference lookup
+(forward and gradient), the transfer stage skipped below min_weight changes pixels by less than that weight,
+samples stay inside the scene box, and the occupancy grid starts from the visual hull."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from lightstage.training.config import load_config
+from lightstage.training.hashgrid import CORNERS, PRIMES, HashGridEncoding
+from lightstage.training.model import RelightModel
+from lightstage.training.occupancy import hull_prior
+
+
+def _reference(enc: HashGridEncoding, x: torch.Tensor) -> torch.Tensor:
+    """Level by level, 64-bit spatial hash (x*1 ^ y*2654435761 ^ z*805459861) mod T, as Mueller et al."""
+    u = ((x + 1.0) * 0.5).clamp(0.0, 1.0)
+    out = []
+    for level, res in enumerate(enc.resolutions.tolist()):
+        pos = u * res
+        cell = torch.floor(pos).long().clamp(max=res - 1)
+        frac = pos - cell
+        v = cell[:, None, :] + CORNERS
+        if enc.dense[level]:
+            idx = v[..., 0] + (res + 1) * (v[..., 1] + (res + 1) * v[..., 2])
+        else:
+            idx = (
+                (v[..., 0] * PRIMES[0]) ^ (v[..., 1] * PRIMES[1]) ^ (v[..., 2] * PRIMES[2])
+            ) % enc.table_size
+        w = torch.where(CORNERS.bool(), frac[:, None, :], 1.0 - frac[:, None, :]).prod(-1)
+        out.append((enc.tables[level][idx] * w[..., None]).sum(1))
+    return torch.cat(out, dim=-1)
+
+
+@pytest.mark.parametrize("levels,log2_t,max_res", [(16, 19, 2048), (8, 17, 512), (4, 10, 64)])
+def test_vectorised_encoding_equals_reference(levels, log2_t, max_res):
+    torch.manual_seed(0)
+    enc = HashGridEncoding(levels, 2, log2_t, 16, max_res)
+    with torch.no_grad():
+        enc.tables.normal_()
+    x = torch.rand(2000, 3) * 2 - 1
+    x[:5], x[5:10] = 1.0, -1.0  # the cube's faces
+    got, want = enc(x), _reference(enc, x)
+    torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
+    g = torch.randn_like(got)
+    (got * g).sum().backward()
+    grad = enc.tables.grad.clone()
+    enc.tables.grad = None
+    (_reference(enc, x) * g).sum().backward()
+    torch.testing.assert_close(grad, enc.tables.grad, atol=1e-5, rtol=1e-5)
+
+
+def _rays(n: int = 256):
+    torch.manual_seed(1)
+    o = torch.tensor([0.0, -2.0, 0.0]).expand(n, 3) + torch.randn(n, 3) * 0.05
+    d = torch.nn.functional.normalize(torch.tensor([0.0, 1.0, 0.0]) + torch.randn(n, 3) * 0.15, dim=-1)
+    light = torch.nn.functional.normalize(torch.randn(n, 3), dim=-1)
+    return o, d, light
+
+
+def test_transfer_skipped_only_below_min_weight():
+    cfg = load_config("cpu").model
+    model = RelightModel(cfg, [0.0, 0.0, 0.0], 1.0)
+    with torch.no_grad():  # a dense blob so weights vary along rays
+        model.fine.geo[-1].bias[0] = 3.0
+    o, d, light = _rays()
+    full = RelightModel(load_config("cpu", {"model": {"min_weight": 0.0}}).model, [0.0, 0.0, 0.0], 1.0)
+    full.load_state_dict(model.state_dict())
+    a, b = model(o, d, light)["rgb"], full(o, d, light)["rgb"]
+    h_max = 1.0  # exp(h) at init is ~exp(-3); bound the skipped mass by min_weight * samples * max h
+    assert (a - b).abs().max() <= cfg.min_weight * cfg.n_fine * h_max
+    assert (a - b).abs().max() > 0 or cfg.min_weight == 0
+
+
+def test_samples_stay_inside_the_box_and_density_outside_is_zero():
+    cfg = load_config("cpu").model
+    box = [[-0.2, -0.1, -0.5], [0.2, 0.1, 0.3]]
+    model = RelightModel(cfg, [0.0, 0.0, 0.0], 1.0, box=box)
+    o, d, _ = _rays(64)
+    seen = []
+    model.fine.geometry = (lambda f: lambda x: (seen.append(x.detach().clone()), f(x))[1])(
+        model.fine.geometry
+    )
+    model(o, d, torch.nn.functional.normalize(torch.ones(64, 3), dim=-1))
+    x = torch.cat(seen)
+    lo, hi = torch.tensor(box[0]), torch.tensor(box[1])
+    assert ((x >= lo - 1e-6) & (x <= hi + 1e-6)).all()
+    outside = torch.tensor([[0.5, 0.0, 0.0], [0.0, 0.0, 0.8]])
+    assert (model.density(outside) == 0).all()
+
+
+def test_hull_prior_marks_exactly_the_overlapping_cells():
+    hull = torch.zeros(10, 10, 10, dtype=torch.bool)
+    hull[4:6, 4:6, 4:6] = True  # voxels 4, 5 of 10 over [-0.5, 0.5]: [-0.1, 0.1]; dilated [-0.2, 0.2]
+    prior = hull_prior(hull, torch.tensor([-0.5] * 3), torch.tensor([0.5] * 3), 16)
+    idx = prior.nonzero()
+    # cells of 0.125 overlapping [-0.2, 0.2]: [-0.25, 0.25] = cells 6..9
+    assert prior.sum() == 4**3 and idx.min() == 6 and idx.max() == 9
+    cfg = load_config("cpu").model
+    model = RelightModel(cfg, [0.0, 0.0, 0.0], 1.0, box=[[-0.5] * 3, [0.5] * 3], hull=hull)
+    occ = model.occupancy
+    # a 0.4-wide cube (+ one 1/32 cell each side at most) of the 2-wide unit cube, from step 0
+    assert bool(occ.ready) and (0.4 / 2) ** 3 <= occ.occupied_fraction() <= ((0.4 + 2 / 32) / 2) ** 3
+    assert occ.occupied(torch.tensor([[0.0, 0.0, 0.0]])).all()
+    assert not occ.occupied(torch.tensor([[0.4, 0.4, 0.4]])).any()
