@@ -1,7 +1,8 @@
 """Time to a test-PSNR threshold from a training run's evaluation history (WORK/train/log.json).
 
 The trainer records, at each periodic evaluation (`lightstage train --eval-every N`), the mean PSNR of its preview
-test images and the optimiser time so far (`train_seconds`, summed over resumed runs, evaluations excluded).
+test images against their masked targets (`psnr`; `psnr_full` beside it: every pixel of the raw target) and the
+optimiser time so far (`train_seconds`, summed over resumed runs, evaluations excluded).
 This prints when the threshold was first reached, the last periodic PSNR, and the full test-split PSNR from
 WORK/reports/eval.json when `lightstage eval` has run (issue #10: `fast` >= 35 dB within 10 minutes on one GPU).
 
@@ -41,6 +42,7 @@ def main() -> int:
     if eval_report.is_file():
         e = json.loads(eval_report.read_text())
         out["test_split"] = {"count": e.get("count"), **e.get("mean", {}), "lpips": e.get("lpips")}
+        out["ceiling"] = e.get("ceiling")  # what a perfect prediction scores (ceiling_* keys), or why not
     print(json.dumps(out, indent=2))
     return 0
 
