@@ -113,6 +113,7 @@ def fit(
         betas=(ocfg.beta1, ocfg.beta2),
         eps=ocfg.adam_eps,
         weight_decay=ocfg.weight_decay,
+        fused=True,  # one kernel per tensor: ~10x less CPU time than the default for-each step (16 M params)
     )
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, ocfg))
     use_scaler = device.type == "cuda" and ocfg.precision == "fp16"
