@@ -30,7 +30,7 @@ class PreprocessConfig:
     # ---- segmentation (on the processed resolution)
     segmentation: str = "adaptive"  # adaptive | lit_fraction (the old fixed-fraction rule)
     # adaptive: a pixel's lit levels are the brightnesses these fractions of its frames exceed ...
-    brightness_quantiles: str = "0.1,0.25,0.5"
+    brightness_quantiles: str = "0.1,0.25"
     min_quantile_frames: float = 2.0  # ... and at least this many frames (a flare is in one, rarely two)
     border_width: float = (
         0.03  # ... the background is first measured in a border ring this wide (x short side)

@@ -101,7 +101,13 @@ def test_default_segmentation_on_realistic_views(case: str, tmp_path: Path, monk
 def test_lit_backdrop_defeats_a_fixed_floor_but_not_the_measured_one(tmp_path: Path, monkeypatch) -> None:
     """The failure of issue 19: darks quantised to 0 make the frame's dark level 0, so a fixed floor far below
     a lit backdrop calls the whole backdrop lit; the thresholds measured on the view's own background do not."""
-    cap = _simulate(tmp_path / "cap", monkeypatch, {"backdrop_stops": 8.5, "quantise_bits": 8})
+    # an 8-bit linear source exposed as a lab would (the object 2 stops brighter than the simulator's default)
+    cap = _simulate(
+        tmp_path / "cap",
+        monkeypatch,
+        {"backdrop_stops": 8.5, "quantise_bits": 8},
+        scene={"light_intensity": 24.0},
+    )
     work = _preprocess(cap, tmp_path / "work")
     adaptive = _ious(cap, work, PreprocessConfig())
     fixed = _ious(cap, work, PreprocessConfig(segmentation="lit_fraction", lit_floor=2.0**-16))
