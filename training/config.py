@@ -86,8 +86,9 @@ class ModelConfig:
     h_bias_init: float = -3.0  # exp(-3) ~ 0.05: early predictions start small, like dark pixels
     h_max_exponent: float = 15.0  # exp(15) ~ 3.3e6: bounds h without overflow (float32 overflows at ~88)
     resample_padding: float = 0.01  # uniform pdf mass added before hierarchical resampling
-    # Fields with a separate geometry / transfer stage (hashgrid): evaluate h only at samples whose volume
-    # weight exceeds this (0: everywhere). Samples below it add < min_weight * h to their pixel.
+    # Rendering with fields that have a separate geometry / transfer stage (hashgrid): evaluate h only at
+    # samples whose volume weight exceeds this (0: everywhere); each skipped sample adds < min_weight * h to
+    # its pixel. Training always evaluates every kept sample.
     min_weight: float = 0.0
 
 

@@ -99,7 +99,7 @@ class RelightModel(nn.Module):
             keep = keep.clone()
             keep.view(-1)[0] = True
         R, S = t.shape
-        if self.cfg.min_weight > 0 and hasattr(field, "geometry"):
+        if self.cfg.min_weight > 0 and hasattr(field, "geometry") and not torch.is_grad_enabled():
             return self._march_two_stage(field, x, d, light, keep, delta)
         if bool(keep.all()):
             s, h = field(
@@ -126,7 +126,9 @@ class RelightModel(nn.Module):
         delta: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Density and features at the kept samples, then the transfer stage only where the volume weight
-        exceeds cfg.min_weight (on a surface-like object a handful of samples per ray)."""
+        exceeds cfg.min_weight (on a surface-like object a handful of samples per ray). Rendering only (no
+        gradients): in training a skipped sample would pass no gradient to its density, and a region whose
+        weights fell below the threshold could never grow back (a dark, thin stand is lost that way)."""
         R, S = keep.shape
         s, feat = field.geometry(x[keep])
         sigma = torch.zeros(R, S, device=x.device, dtype=s.dtype).masked_scatter(keep, s)

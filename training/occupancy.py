@@ -13,7 +13,7 @@ from collections.abc import Callable
 import torch
 from torch import nn
 
-PRIOR_FACTOR = 16.0  # prior cells stay occupied for log(16) / -log(decay) updates without density support
+PRIOR_FACTOR = 2.0  # prior cells stay occupied for log(2) / -log(decay) updates without density support
 
 
 class OccupancyGrid(nn.Module):
