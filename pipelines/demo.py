@@ -1,4 +1,4 @@
-"""`lightstage demo`: simulate a capture, run the whole pipeline on it with the tiny training config, relight
+"""`lightstage demo`: simulate a capture, run the whole pipeline on it with the `cpu` training config, relight
 the model with an environment map and write WORK/report.md with PNGs a person can look at.
 
 Every step is resumable: a rerun reuses the simulated capture and skips up-to-date stages.
@@ -64,7 +64,7 @@ def simulate(work: WorkDir, settings: Any, progress: bool = True) -> Path:
 def demo_config(
     config_path: str | os.PathLike[str] | None, workers: int | None, scheduler: str | None
 ) -> Any:
-    """The demo's pipeline config: the built-in `demo` (tiny training) unless a file is given."""
+    """The demo's pipeline config: the built-in `demo` (`cpu` training config) unless a file is given."""
     from lightstage.pipelines.config import load_pipeline_config
 
     config = load_pipeline_config(config_path if config_path is not None else "demo")

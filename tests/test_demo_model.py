@@ -1,0 +1,35 @@
+"""The demo's model (the `cpu` config) on a simulated capture, through the real stages: it must beat the
+constant-colour baseline on the masked metric by a wide margin and stay below the ceiling."""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+
+from lightstage.dataset.shards import ShardConfig, run_shard
+from lightstage.dataset.split import SplitConfig, run_split
+from lightstage.training.config import load_config
+from lightstage.training.evaluate import run_eval
+from lightstage.training.run import run_train
+from lightstage.workdir import WorkDir
+
+
+@pytest.mark.slow
+def test_cpu_model_beats_the_baseline_on_the_masked_metric(tiny_capture, tmp_path):
+    from lightstage.preprocess.config import PreprocessConfig
+    from lightstage.preprocess.run import run_preprocess
+
+    work = WorkDir.at(tmp_path / "work")
+    work.root.mkdir()
+    work.capture_pointer.write_text(str(tiny_capture))
+    run_preprocess(work, PreprocessConfig(), progress=False)
+    work.calibration.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copy(tiny_capture / "ground_truth" / "geometry.json", work.calibration)
+    run_split(work, SplitConfig.from_dict({"protocol": {"base": "paper", "lights": {"train": "rest"}}}), progress=False)
+    run_shard(work, ShardConfig(workers=1), progress=False)
+    cfg = load_config("cpu", {"optim": {"steps": 300, "batch_rays": 512}, "eval": {"every": 0}})
+    run_train(work, cfg, progress=False, device="cpu")
+    mean = run_eval(work, progress=False, device="cpu")["mean"]
+    assert mean["psnr"] >= mean["baseline_psnr"] + 8.0, mean
+    assert mean["psnr"] < mean["ceiling_psnr"], mean
