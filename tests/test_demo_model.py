@@ -26,7 +26,11 @@ def test_cpu_model_beats_the_baseline_on_the_masked_metric(tiny_capture, tmp_pat
     run_preprocess(work, PreprocessConfig(), progress=False)
     work.calibration.parent.mkdir(parents=True, exist_ok=True)
     shutil.copy(tiny_capture / "ground_truth" / "geometry.json", work.calibration)
-    run_split(work, SplitConfig.from_dict({"protocol": {"base": "paper", "lights": {"train": "rest"}}}), progress=False)
+    run_split(
+        work,
+        SplitConfig.from_dict({"protocol": {"base": "paper", "lights": {"train": "rest"}}}),
+        progress=False,
+    )
     run_shard(work, ShardConfig(workers=1), progress=False)
     cfg = load_config("cpu", {"optim": {"steps": 300, "batch_rays": 512}, "eval": {"every": 0}})
     run_train(work, cfg, progress=False, device="cpu")

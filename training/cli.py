@@ -12,7 +12,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("work", help="work directory")
     p.add_argument(
-        "--config", default="paper", help="paper | paper-lite | fast | cpu | tiny | a YAML file (default: paper)"
+        "--config",
+        default="paper",
+        help="paper | paper-lite | fast | cpu | tiny | a YAML file (default: paper)",
     )
     p.add_argument("--steps", type=int, default=None, help="total optimiser steps (overrides the config)")
     p.add_argument("--device", default="auto", help="cpu | cuda | auto (default)")
