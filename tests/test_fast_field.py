@@ -106,3 +106,17 @@ def test_hull_prior_marks_exactly_the_overlapping_cells():
     assert bool(occ.ready) and (0.4 / 2) ** 3 <= occ.occupied_fraction() <= ((0.4 + 2 / 32) / 2) ** 3
     assert occ.occupied(torch.tensor([[0.0, 0.0, 0.0]])).all()
     assert not occ.occupied(torch.tensor([[0.4, 0.4, 0.4]])).any()
+
+
+def test_half_vector_input_widens_the_head_and_trains():
+    from lightstage.training.encoding import encoded_dim
+
+    cfg = load_config("cpu").model
+    assert cfg.hashgrid.half_freqs == 4
+    model = RelightModel(cfg, [0.0, 0.0, 0.0], 1.0)
+    g = cfg.hashgrid
+    want = g.geo_features + encoded_dim(g.dir_freqs) + encoded_dim(g.light_freqs) + encoded_dim(g.half_freqs)
+    assert model.fine.head[0].in_features == want
+    o, d, light = _rays(32)
+    model(o, d, light)["rgb"].sum().backward()
+    assert model.fine.head[0].weight.grad.abs().sum() > 0

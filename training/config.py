@@ -57,6 +57,9 @@ class HashGridConfig:
     geo_features: int = 15
     dir_freqs: int = 4
     light_freqs: int = 4
+    # also feed the head the half vector normalize(light - ray direction) at this many frequencies (-1: not),
+    # the direction a mirror-like highlight depends on (Blinn-Phong); a function of the same view and light
+    half_freqs: int = -1
 
 
 @dataclass

@@ -120,6 +120,7 @@ class HashGridField(nn.Module):
             nn.Linear(self.encoding.output_dim, g.hidden), nn.ReLU(), nn.Linear(g.hidden, 1 + g.geo_features)
         )
         head_in = g.geo_features + encoded_dim(g.dir_freqs) + encoded_dim(g.light_freqs)
+        head_in += encoded_dim(g.half_freqs) if g.half_freqs >= 0 else 0
         self.head = nn.Sequential(
             nn.Linear(head_in, g.hidden),
             nn.ReLU(),
@@ -144,10 +145,13 @@ class HashGridField(nn.Module):
     def transfer(self, features: torch.Tensor, view: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
         """(N, 3) transfer gradient h from geometry features and unit view / light directions (N, 3)."""
         g = self.cfg.hashgrid
-        head_in = torch.cat(
-            [features, positional_encoding(view, g.dir_freqs), positional_encoding(light, g.light_freqs)], -1
-        )
-        return exp_head(self.head(head_in), self.cfg.h_max_exponent)
+        parts = [features, positional_encoding(view, g.dir_freqs), positional_encoding(light, g.light_freqs)]
+        if g.half_freqs >= 0:
+            half = torch.nn.functional.normalize(
+                light - view, dim=-1
+            )  # view: the ray direction, into the scene
+            parts.append(positional_encoding(half, g.half_freqs))
+        return exp_head(self.head(torch.cat(parts, -1)), self.cfg.h_max_exponent)
 
     def forward(
         self, x: torch.Tensor, view: torch.Tensor, light: torch.Tensor
