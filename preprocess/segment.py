@@ -262,25 +262,10 @@ def _segment_adaptive(stats: ViewStats, config: PreprocessConfig) -> tuple[np.nd
 
 def _segment_lit_fraction(stats: ViewStats, config: PreprocessConfig) -> np.ndarray:
     """The old rule: lit (above each frame's dark level + lit_floor x cutoff) in min_lit_fraction of frames."""
-    import cv2
-
     unsat = stats.unsaturated
     mostly_unsat = stats.saturated <= config.max_saturated_fraction * stats.count
     coarse = (stats.lit_fraction() >= config.min_lit_fraction) & mostly_unsat & (unsat > 0)
-    m = coarse.astype(np.uint8)
-    if config.open_radius:
-        m = cv2.morphologyEx(m, cv2.MORPH_OPEN, _disk(config.open_radius))
-    if config.close_radius:
-        m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, _disk(config.close_radius))
-    mask = keep_components(m.astype(bool), config)
-    if config.fill_holes:
-        mask = fill_holes(mask)
-    if mask.any():
-        mask = refine_boundary(mask, stats.unsaturated_mean_luminance())
-        mask = keep_components(mask, config)
-        if config.fill_holes:
-            mask = fill_holes(mask)
-    return mask
+    return _cleanup(coarse, stats, config, rim=0)
 
 
 def border_fraction(mask: np.ndarray) -> float:
