@@ -4,6 +4,7 @@ constant-colour baseline on the masked metric by a wide margin and stay below th
 from __future__ import annotations
 
 import shutil
+from pathlib import Path
 
 import pytest
 
@@ -15,25 +16,28 @@ from lightstage.training.run import run_train
 from lightstage.workdir import WorkDir
 
 
-@pytest.mark.slow
-def test_cpu_model_beats_the_baseline_on_the_masked_metric(tiny_capture, tmp_path):
+def train_and_eval(capture: Path, root: Path) -> dict:
+    """The real stages: preprocess, true calibration, split (every non-test light trains), shard, 300 steps of
+    the `cpu` config, eval; returns the eval means."""
     from lightstage.preprocess.config import PreprocessConfig
     from lightstage.preprocess.run import run_preprocess
 
-    work = WorkDir.at(tmp_path / "work")
+    work = WorkDir.at(root)
     work.root.mkdir()
-    work.capture_pointer.write_text(str(tiny_capture))
+    work.capture_pointer.write_text(str(capture))
     run_preprocess(work, PreprocessConfig(), progress=False)
     work.calibration.parent.mkdir(parents=True, exist_ok=True)
-    shutil.copy(tiny_capture / "ground_truth" / "geometry.json", work.calibration)
-    run_split(
-        work,
-        SplitConfig.from_dict({"protocol": {"base": "paper", "lights": {"train": "rest"}}}),
-        progress=False,
-    )
+    shutil.copy(capture / "ground_truth" / "geometry.json", work.calibration)
+    split = SplitConfig.from_dict({"protocol": {"base": "paper", "lights": {"train": "rest"}}})
+    run_split(work, split, progress=False)
     run_shard(work, ShardConfig(workers=1), progress=False)
     cfg = load_config("cpu", {"optim": {"steps": 300, "batch_rays": 512}, "eval": {"every": 0}})
     run_train(work, cfg, progress=False, device="cpu")
-    mean = run_eval(work, progress=False, device="cpu")["mean"]
+    return run_eval(work, progress=False, device="cpu")["mean"]
+
+
+@pytest.mark.slow
+def test_cpu_model_beats_the_baseline_on_the_masked_metric(tiny_capture, tmp_path):
+    mean = train_and_eval(tiny_capture, tmp_path / "work")
     assert mean["psnr"] >= mean["baseline_psnr"] + 8.0, mean
     assert mean["psnr"] < mean["ceiling_psnr"], mean

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import shutil
 import time
 from pathlib import Path
 
@@ -18,14 +17,8 @@ import lightstage.capture.simulate as sim
 from lightstage.capture.frames import read_exr
 from lightstage.capture.layout import FrameId
 from lightstage.capture.stage import load_stage
-from lightstage.dataset.shards import ShardConfig, run_shard
-from lightstage.dataset.split import SplitConfig, run_split
-from lightstage.preprocess.config import PreprocessConfig
 from lightstage.preprocess.processed import read_processed_half, to_float
-from lightstage.preprocess.run import read_gt_mask, run_preprocess
-from lightstage.training.config import load_config
-from lightstage.training.evaluate import run_eval
-from lightstage.training.run import run_train
+from lightstage.preprocess.run import read_gt_mask
 from lightstage.workdir import WorkDir
 
 # LEDs 30% apart in brightness (log-normal sigma) and 10% per channel: twice the `stage` realism's spread
@@ -46,22 +39,15 @@ def _unequal_led_capture(root: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 
 
 def _train_and_eval(capture: Path, root: Path) -> dict:
-    """The real stages, as tests/test_demo_model.py: preprocess, true calibration, split, shard, train, eval."""
-    work = WorkDir.at(root)
-    work.root.mkdir()
-    work.capture_pointer.write_text(str(capture))
-    run_preprocess(work, PreprocessConfig(), progress=False)
-    work.calibration.parent.mkdir(parents=True, exist_ok=True)
-    shutil.copy(capture / "ground_truth" / "geometry.json", work.calibration)
-    run_split(
-        work,
-        SplitConfig.from_dict({"protocol": {"base": "paper", "lights": {"train": "rest"}}}),
-        progress=False,
+    """The real stages, as the demo-model test runs them (one helper for both)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "test_demo_model", Path(__file__).with_name("test_demo_model.py")
     )
-    run_shard(work, ShardConfig(workers=1), progress=False)
-    cfg = load_config("cpu", {"optim": {"steps": 300, "batch_rays": 512}, "eval": {"every": 0}})
-    run_train(work, cfg, progress=False, device="cpu")
-    return run_eval(work, progress=False, device="cpu")["mean"]
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.train_and_eval(capture, root)
 
 
 @pytest.mark.slow
