@@ -45,8 +45,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5, help="timed writes per layout (default 5)")
     args = ap.parse_args()
 
-    from lightstage.capture.frames import ExrPart, write_exr_parts
-    from lightstage.preprocess.processed import FLAGS_COMPRESSION, TILE
+    from lightstage.frames import ExrPart, write_exr_parts
+    from lightstage.records.processed import FLAGS_COMPRESSION, TILE
     from lightstage.threads import set_library_threads
 
     set_library_threads(1)

@@ -36,8 +36,8 @@ RES = (8192, 5464)
 
 def generate_frames(out: Path, distinct: int, seed: int = 0) -> list[Path]:
     """Write `distinct` raw half ZIP frames at 8192x5464 with the simulator's noise model."""
-    from lightstage.capture.frames import write_exr
     from lightstage.capture.presets import PAPER_SATURATION
+    from lightstage.frames import write_exr
 
     W, H = RES
     rng = np.random.default_rng(seed)
@@ -156,12 +156,13 @@ class ConcurrentFloor:
 def breakdown(paths: list[Path], tmp: Path) -> dict[str, dict[str, float]]:
     """Mean wall and CPU seconds per step of the per-frame work, in this process (one library thread); the
     write is timed for every lossless compression."""
-    from lightstage.capture.frames import COMPRESSIONS
+    from lightstage.frames import COMPRESSIONS
     from lightstage.preprocess.downscale import decode_downscale, decode_raw, downscale
     from lightstage.preprocess.flare import lit_threshold, thumbnail
-    from lightstage.preprocess.processed import HalfRounder, write_processed
     from lightstage.preprocess.run import _check_finite
-    from lightstage.preprocess.stats import StatsAccumulator, luminance
+    from lightstage.preprocess.stats import StatsAccumulator
+    from lightstage.records.processed import HalfRounder, write_processed
+    from lightstage.tonemap import luminance
 
     wall: dict[str, list[float]] = {}
     cpu: dict[str, list[float]] = {}

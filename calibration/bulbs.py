@@ -21,10 +21,11 @@ import numpy as np
 
 from lightstage.calibration.light_rays import LightRay
 from lightstage.cameras import pixel_rays, project, world_to_camera
-from lightstage.capture.layout import Capture, FrameId, ViewId
+from lightstage.capture.layout import Capture
 from lightstage.capture.stage import Stage
 from lightstage.errors import LightstageError
-from lightstage.preprocess.stats import luminance
+from lightstage.ids import FrameId, ViewId
+from lightstage.tonemap import luminance
 from lightstage.workdir import DOWNSCALE, WorkDir
 
 
@@ -192,8 +193,8 @@ def find_bulbs(
     camera's image are read; a disc farther than `max_offset_px` (processed pixels) from there is not the bulb.
     See `combine_discs` for how the groups' discs make one sighting.
     """
-    from lightstage.preprocess.processed import read_processed
     from lightstage.preprocess.segment import read_mask
+    from lightstage.records.processed import read_processed
 
     stage = capture.stage
     w, h = stage.width // DOWNSCALE, stage.height // DOWNSCALE

@@ -14,9 +14,9 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from lightstage.calibration.record import Calibration
 from lightstage.calibration.register import Similarity, umeyama
 from lightstage.cameras import camera_center
+from lightstage.records.calibration import Calibration
 
 
 def _stats(x: list[float] | np.ndarray) -> dict[str, float]:

@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 
 from lightstage.atomic import write_json_atomic
-from lightstage.calibration.record import Calibration
 from lightstage.cameras import opencv_to_opengl_c2w
+from lightstage.records.calibration import Calibration
 from lightstage.workdir import DOWNSCALE, WorkDir
 
 

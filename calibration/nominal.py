@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from lightstage.calibration.record import Calibration, ViewCalibration
-from lightstage.capture.layout import ViewId
 from lightstage.capture.stage import Stage
+from lightstage.ids import ViewId
+from lightstage.records.calibration import Calibration, ViewCalibration
 
 
 def nominal_calibration(

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 
 from lightstage.atomic import atomic_path
-from lightstage.calibration.record import Calibration
 from lightstage.cameras import camera_center
+from lightstage.records.calibration import Calibration
 
 
 def plot_layout(calib: Calibration, path: Path, title: str = "") -> Path:

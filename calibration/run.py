@@ -24,10 +24,11 @@ from typing import Any
 import numpy as np
 
 from lightstage.atomic import write_json_atomic
-from lightstage.calibration.record import Calibration, ViewCalibration
 from lightstage.cameras import camera_center, scale_intrinsics
-from lightstage.capture.layout import Capture, ViewId, open_capture
+from lightstage.capture.layout import Capture, open_capture
 from lightstage.errors import LightstageError
+from lightstage.ids import ViewId
+from lightstage.records.calibration import Calibration, ViewCalibration
 from lightstage.rig import light_position_in_world
 from lightstage.workdir import DOWNSCALE, WorkDir
 

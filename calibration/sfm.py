@@ -23,8 +23,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lightstage.capture.layout import ViewId
 from lightstage.errors import LightstageError
+from lightstage.ids import ViewId
 
 
 @dataclass(frozen=True)

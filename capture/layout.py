@@ -17,33 +17,11 @@ import yaml
 from lightstage.atomic import write_text_atomic
 from lightstage.capture.stage import Stage, load_stage
 from lightstage.errors import LightstageError
+from lightstage.ids import FrameId, ViewId
 
 DEFAULT_PATH_TEMPLATE = "frames/{group}/{camera}/{light:03d}.exr"
 STAGE_FILE = "stage.yaml"
 CAPTURE_FILE = "capture.yaml"
-
-
-@dataclass(frozen=True, order=True)
-class FrameId:
-    """One OLAT frame: (group name, camera id, 0-based light index)."""
-
-    group: str
-    camera: str
-    light: int
-
-    def __str__(self) -> str:
-        return f"{self.group}/{self.camera}/{self.light:03d}"
-
-
-@dataclass(frozen=True, order=True)
-class ViewId:
-    """One view: (group name, camera id)."""
-
-    group: str
-    camera: str
-
-    def __str__(self) -> str:
-        return f"{self.group}/{self.camera}"
 
 
 @dataclass(frozen=True)

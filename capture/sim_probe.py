@@ -27,10 +27,10 @@ from scipy import ndimage
 from scipy.special import ndtr
 
 from lightstage.cameras import PinholeCamera, pixel_rays
-from lightstage.capture.frames import write_exr
 from lightstage.capture.probe import DEFAULT_AMBIENT_TEMPLATE, DEFAULT_PROBE_TEMPLATE, ProbeInfo
 from lightstage.capture.sim_render import POOL_MAX_VALUES, add_noise_and_clip, background_image
 from lightstage.capture.sim_scene import SimScene
+from lightstage.frames import write_exr
 from lightstage.rig import group_transform
 
 if TYPE_CHECKING:

@@ -20,14 +20,12 @@ from typing import Any
 import numpy as np
 
 from lightstage.atomic import write_json_atomic
-from lightstage.calibration.record import Calibration, ViewCalibration
 from lightstage.cameras import PinholeCamera, rotation_axis_angle
 from lightstage.capture.layout import (
     CAPTURE_FILE,
     DEFAULT_PATH_TEMPLATE,
     STAGE_FILE,
     CaptureInfo,
-    ViewId,
     save_capture_info,
 )
 from lightstage.capture.presets import PAPER_RESOLUTION, make_stage
@@ -44,6 +42,8 @@ from lightstage.capture.sim_render import ViewJob, render_view, run_view_job
 from lightstage.capture.sim_scene import SimScene, cast_view, default_scene, led_intensities, render_hits
 from lightstage.capture.stage import Stage
 from lightstage.errors import LightstageError
+from lightstage.ids import ViewId
+from lightstage.records.calibration import Calibration, ViewCalibration
 from lightstage.rig import TurntableAxis, camera_pose_in_world, light_position_in_world
 
 GROUND_TRUTH = "ground_truth"
@@ -444,7 +444,7 @@ def write_contact_sheet(root: Path, stage: Stage, lights: list[int], max_views: 
     """A grid of a few views x lights of the raw frames, tonemapped (one exposure), as contact_sheet.png."""
     import cv2
 
-    from lightstage.capture.frames import read_exr, write_image
+    from lightstage.frames import read_exr, write_image
     from lightstage.tonemap import tonemap_u8
 
     cams = stage.camera_ids

@@ -24,8 +24,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from lightstage import frames
 from lightstage.atomic import write_json_atomic
-from lightstage.capture import frames
 from lightstage.capture.layout import Capture, open_capture
 from lightstage.errors import LightstageError
 

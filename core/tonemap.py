@@ -11,6 +11,17 @@ from __future__ import annotations
 
 import numpy as np
 
+# Rec. 709 luminance weights of linear RGB.
+LUMA = (0.2126, 0.7152, 0.0722)
+_LUMA_MATRIX = np.array([LUMA], np.float32)
+
+
+def luminance(rgb: np.ndarray) -> np.ndarray:
+    """(h, w, 3) float32 linear RGB -> (h, w) float32 luminance (OpenCV channel transform, vectorised)."""
+    import cv2
+
+    return cv2.transform(np.ascontiguousarray(rgb, np.float32), _LUMA_MATRIX)
+
 
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
     """sRGB OETF of linear values in [0, 1] (IEC 61966-2-1)."""

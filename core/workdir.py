@@ -24,7 +24,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from lightstage.capture.layout import FrameId, ViewId
+from lightstage.ids import FrameId, ViewId
 
 # Zone labels of the per-view zone map (used by preprocess, shards and the sampler).
 ZONE_BACKGROUND = 0

@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 
 from lightstage.atomic import write_json_atomic
-from lightstage.capture.layout import ViewId
 from lightstage.errors import LightstageError
+from lightstage.ids import ViewId
 from lightstage.workdir import WorkDir
 
 BOUNDS_FORMAT_VERSION = 1
@@ -238,7 +238,7 @@ def write_bounds_picture(path: Path, work: WorkDir, calib: Any, views: list[View
     """PNG: the box's 12 edges projected onto up to 4 views (well-lit image if present, else the mask), tiled."""
     import cv2
 
-    from lightstage.capture.frames import write_image
+    from lightstage.frames import write_image
 
     lo, hi = bounds.box_min, bounds.box_max
     corners = np.array(
@@ -300,7 +300,7 @@ def run_bounds(
     """Carve the visual hull of the training views' masks; write WORK/bounds.json and reports/bounds.json."""
     import cv2
 
-    from lightstage.calibration.record import Calibration
+    from lightstage.records.calibration import Calibration
 
     t0 = time.perf_counter()
     calib = Calibration.load(work.calibration)

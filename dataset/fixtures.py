@@ -7,11 +7,12 @@ from pathlib import Path
 
 import numpy as np
 
-from lightstage.calibration.record import Calibration, ViewCalibration
-from lightstage.capture.frames import write_exr
-from lightstage.capture.layout import CaptureInfo, FrameId, ViewId, save_capture_info
+from lightstage.capture.layout import CaptureInfo, save_capture_info
 from lightstage.capture.presets import make_stage
 from lightstage.capture.stage import Stage
+from lightstage.frames import write_exr
+from lightstage.ids import FrameId, ViewId
+from lightstage.records.calibration import Calibration, ViewCalibration
 from lightstage.workdir import DOWNSCALE, ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND, WorkDir
 
 SPHERE_CENTRE = np.array([0.02, -0.01, 0.03])
@@ -105,14 +106,14 @@ def write_random_shards(root: str | Path, num_shards: int, rays_per_shard: int, 
     import json
 
     from lightstage.atomic import write_json_atomic
-    from lightstage.dataset.shards import (
+    from lightstage.dataset.shards import file_sha256
+    from lightstage.records.shards import (
         COMPOSITION,
         MANIFEST,
         RAY_DTYPE,
         SHARD_FORMAT_VERSION,
         ZONE_NAMES,
         ZONES,
-        file_sha256,
     )
 
     out = Path(root) / "shards"

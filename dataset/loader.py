@@ -18,10 +18,10 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
-from lightstage.dataset.shards import COMPOSITION, RAY_DTYPE, ZONE_NAMES, ZONES, load_manifest, verify_shard
+from lightstage.dataset.shards import verify_shard
 from lightstage.errors import LightstageError
+from lightstage.records.shards import COMPOSITION, RAY_DTYPE, ZONE_NAMES, ZONES, load_manifest
 
-BATCH_KEYS = ("origins", "directions", "light_positions", "light_directions", "rgb", "saturated", "zone")
 VERIFY_MODES = ("open", "all", "never")
 
 

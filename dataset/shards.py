@@ -21,32 +21,19 @@ from typing import Any
 import numpy as np
 
 from lightstage.atomic import atomic_path, write_json_atomic
-from lightstage.capture.layout import FrameId, ViewId
 from lightstage.errors import LightstageError
-from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND, WorkDir
-
-SHARD_FORMAT_VERSION = 1
-# One ray, 64 bytes, packed. pixel = integer pixel (column i, row j) of the processed image, outside it for
-# border rays; view / light index the manifest's `views` list and the 0-based light.
-RAY_DTYPE = np.dtype(
-    [
-        ("origin", "<f4", (3,)),
-        ("direction", "<f4", (3,)),
-        ("light_position", "<f4", (3,)),
-        ("light_direction", "<f4", (3,)),
-        ("rgb", "<f2", (3,)),
-        ("saturated", "u1"),
-        ("zone", "u1"),
-        ("view", "<u2"),
-        ("light", "<u2"),
-        ("pixel", "<i2", (2,)),
-    ]
+from lightstage.ids import FrameId, ViewId
+from lightstage.records.shards import (
+    COMPOSITION,
+    MANIFEST,
+    RAY_DTYPE,
+    SHARD_FORMAT_VERSION,
+    ZONE_NAMES,
+    ZONES,
+    load_manifest,
+    write_test_index,
 )
-# Block order inside chunks and shards, and the batch composition of the paper (1/2, 3/8, 1/8).
-ZONES = (ZONE_FOREGROUND, ZONE_BAND, ZONE_BACKGROUND)
-ZONE_NAMES = {ZONE_FOREGROUND: "foreground", ZONE_BAND: "band", ZONE_BACKGROUND: "background"}
-COMPOSITION = (4, 3, 1)  # eighths
-MANIFEST = "manifest.json"
+from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND, WorkDir
 
 
 @dataclass(frozen=True)
@@ -167,11 +154,11 @@ def read_zones(path: Path) -> np.ndarray:
 
 def read_frame(path: Path, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """A processed frame: ((H, W, 3) float16 RGB as stored, (H, W) bool saturated), through preprocess's
-    reader when it is installed, else capture.frames.read_exr on channels R, G, B, S."""
+    reader when it is installed, else lightstage.frames.read_exr on channels R, G, B, S."""
     try:
-        from lightstage.preprocess.processed import read_processed_half
+        from lightstage.records.processed import read_processed_half
     except ImportError:
-        from lightstage.capture.frames import read_exr
+        from lightstage.frames import read_exr
 
         img = read_exr(path, expected_size=size, channels="RGBS")
         return img[..., :3].astype(np.float16), img[..., 3] > 0.5
@@ -521,9 +508,9 @@ def run_shard(
 ) -> dict[str, Any]:
     """Write WORK/shards/{train/*.npy, test/*.npz, manifest.json} from the split, calibration, bounds and
     preprocessed frames; computes bounds.json first when absent. Resumable; reports to reports/shard.json."""
-    from lightstage.calibration.record import Calibration
     from lightstage.dataset.bounds import BoundsConfig, load_bounds, run_bounds
     from lightstage.dataset.split import load_split
+    from lightstage.records.calibration import Calibration
 
     t0 = time.perf_counter()
     root = work.shards_dir
@@ -621,7 +608,7 @@ def run_shard(
     t_c = time.perf_counter()
     tests = _map(write_test_image, test_tasks, client, workers, progress, "shard: test images")
     t_c = time.perf_counter() - t_c
-    write_json_atomic(root / "test" / "index.json", {"images": tests})
+    write_test_index(root, tests)
     rays = int(sum(r["rays"] for r in records))
     nbytes = int(sum(r["bytes"] for r in records))
     manifest = {
@@ -698,26 +685,6 @@ def _summary(
 
 
 # ---- reading ---------------------------------------------------------------------------------------------
-def load_manifest(shards_dir: str | os.PathLike[str]) -> dict[str, Any]:
-    """Read and check shards/manifest.json (format version and ray dtype)."""
-    path = Path(shards_dir) / MANIFEST
-    try:
-        m = json.loads(path.read_text())
-    except OSError as e:
-        raise LightstageError(
-            f"{path}: cannot read shard manifest ({e.strerror}); run `lightstage shard`"
-        ) from None
-    except json.JSONDecodeError as e:
-        raise LightstageError(f"{path}: invalid JSON ({e})") from None
-    if m.get("format_version") != SHARD_FORMAT_VERSION:
-        raise LightstageError(f"{path}: unsupported shard format {m.get('format_version')!r}")
-    if m.get("dtype", {}).get("descr") != str(RAY_DTYPE.descr):
-        raise LightstageError(
-            f"{path}: ray dtype {m.get('dtype', {}).get('descr')} differs from this lightstage's"
-        )
-    return m
-
-
 def verify_shard(shards_dir: Path, record: dict[str, Any]) -> None:
     """Raise LightstageError naming the shard if its size or sha256 differs from the manifest."""
     path = Path(shards_dir) / record["file"]

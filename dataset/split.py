@@ -20,9 +20,9 @@ import numpy as np
 import yaml
 
 from lightstage.atomic import write_json_atomic, write_text_atomic
-from lightstage.capture.layout import FrameId, ViewId
 from lightstage.capture.stage import Stage
 from lightstage.errors import LightstageError
+from lightstage.ids import FrameId, ViewId
 from lightstage.lights import paper_number_to_index
 from lightstage.workdir import WorkDir
 

@@ -116,7 +116,7 @@ def _describe(settings: Any) -> str:
 # ---- relighting ------------------------------------------------------------------------------------------
 def sky_envmap(path: Path, width: int = 64, height: int = 32) -> Path:
     """A synthetic lat-long sky: blue gradient above the horizon, dim ground, a small bright sun."""
-    from lightstage.capture.frames import write_exr
+    from lightstage.frames import write_exr
 
     lat = (0.5 - (np.arange(height) + 0.5) / height) * np.pi  # +pi/2 at the top row
     lon = ((np.arange(width) + 0.5) / width) * 2 * np.pi - np.pi
@@ -411,7 +411,7 @@ def write_report(
     work: WorkDir, timings: dict[str, float], relit: dict[str, Any], seconds: float, preset: str
 ) -> Path:
     """WORK/report.md plus PNGs in WORK/report/: masks, camera layout, predictions vs truth, relit image."""
-    from lightstage.capture.frames import write_image
+    from lightstage.frames import write_image
 
     pics = work.root / "report"
     pics.mkdir(parents=True, exist_ok=True)

@@ -8,8 +8,8 @@ import json
 from dataclasses import dataclass
 from typing import Any
 
-from lightstage.capture.frames import COMPRESSIONS
 from lightstage.errors import LightstageError
+from lightstage.frames import COMPRESSIONS
 
 
 @dataclass(frozen=True)

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lightstage.capture.frames import oiio_error, read_exr_header
 from lightstage.errors import LightstageError
+from lightstage.frames import oiio_error, read_exr_header
 from lightstage.workdir import DOWNSCALE
 
 

@@ -64,7 +64,7 @@ class ProbeViewRecord:
 
 
 def _luminance(rgb: np.ndarray) -> np.ndarray:
-    from lightstage.preprocess.stats import luminance
+    from lightstage.tonemap import luminance
 
     return luminance(rgb)
 
@@ -173,7 +173,7 @@ def _signature(paths: list[str]) -> list[list[float]]:
 
 
 def _read_lum(path: str, size: tuple[int, int], exposure_scale: float) -> np.ndarray:
-    from lightstage.capture.frames import read_exr
+    from lightstage.frames import read_exr
 
     rgb = read_exr(path, size).astype(np.float32)
     if exposure_scale != 1.0:

@@ -24,8 +24,9 @@ from typing import Any
 import numpy as np
 
 from lightstage.atomic import write_json_atomic
-from lightstage.capture.layout import Capture, FrameId, ViewId, open_capture
+from lightstage.capture.layout import Capture, open_capture
 from lightstage.errors import LightstageError
+from lightstage.ids import FrameId, ViewId
 from lightstage.preprocess.config import PreprocessConfig
 from lightstage.workdir import DOWNSCALE, WorkDir
 
@@ -167,14 +168,15 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
     them as the chunk's partial file. Per-frame problems are recorded, never raised."""
     from lightstage.preprocess.downscale import decode_downscale
     from lightstage.preprocess.flare import lit_threshold, thumbnail
-    from lightstage.preprocess.processed import (
+    from lightstage.preprocess.stats import StatsAccumulator
+    from lightstage.records.processed import (
         HalfRounder,
         processed_ok,
         read_processed_half,
         to_float,
         write_processed,
     )
-    from lightstage.preprocess.stats import StatsAccumulator, luminance
+    from lightstage.tonemap import luminance
 
     if _in_dask_worker():
         from lightstage.threads import set_library_threads
@@ -287,12 +289,12 @@ def _thumb_shape(h: int, w: int, factor: int) -> tuple[int, int]:
 def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -> ViewRecord:
     """Merge a view's chunk partials (tree), segment, score flares, write the view's outputs; view.json
     last. `chunk_records` (from this run's chunk tasks) only feed the record's timings."""
-    from lightstage.capture.frames import write_exr, write_image
+    from lightstage.frames import write_exr, write_image
     from lightstage.preprocess.flare import flare_scores
-    from lightstage.preprocess.processed import to_half
     from lightstage.preprocess.segment import iou, mask_flags, segment_view, zone_map
     from lightstage.preprocess.sfm_image import upsample_mask
     from lightstage.preprocess.stats import ViewStats, empty_stats, merge_tree
+    from lightstage.records.processed import to_half
 
     start = time.perf_counter()
     work = WorkDir.at(job.work_root)
@@ -391,7 +393,7 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
 
 def _foreground_level(rgb: np.ndarray, mask: np.ndarray, percentile: float) -> float:
     """The luminance percentile of an image's foreground (0 without one): what the capture's exposure maps to 1."""
-    from lightstage.preprocess.stats import luminance
+    from lightstage.tonemap import luminance
 
     return float(np.percentile(luminance(rgb)[mask], percentile)) if mask.any() else 0.0
 
@@ -431,7 +433,7 @@ def read_gt_mask(path: str | os.PathLike[str], size: tuple[int, int]) -> np.ndar
     half of the source pixels are (strict majority)."""
     import cv2
 
-    from lightstage.capture.frames import read_image
+    from lightstage.frames import read_image
 
     img = read_image(path)[..., 0]
     m = img > 0.5 * (255.0 if img.max() > 1.0 else 1.0)
@@ -440,7 +442,7 @@ def read_gt_mask(path: str | os.PathLike[str], size: tuple[int, int]) -> np.ndar
 
 def _view_finished(work: WorkDir, job: ViewJob) -> ViewRecord | None:
     """The view's record when its outputs are complete and current, else None."""
-    from lightstage.preprocess.processed import processed_ok
+    from lightstage.records.processed import processed_ok
 
     path = work.view_dir(ViewId(job.group, job.camera)) / VIEW_RECORD
     if not path.is_file():
@@ -743,7 +745,7 @@ def write_previews(
     """Write wellit.png (8-bit tonemapped mean image), overlay.png, and the SfM image (sfm.png) with its mask
     (sfm_mask.png) for every finished view, with one exposure for the whole capture per kind of image (and
     WORK/preprocess/sfm_images.json); views whose previews already use those exposures are skipped."""
-    from lightstage.capture.frames import read_exr, write_image
+    from lightstage.frames import read_exr, write_image
     from lightstage.preprocess.segment import overlay, read_mask, zone_map
     from lightstage.preprocess.sfm_image import sfm_image_factor, spread_lights, upsample_mask
     from lightstage.tonemap import tonemap_u8

@@ -57,7 +57,7 @@ def sfm_mean_image(src: SfmSource, trim: bool) -> np.ndarray:
     """(H / f, W / f, 3) float32 linear mean of the source frames (with `trim`, per pixel and channel without the
     brightest one when more than two frames remain). A frame that cannot be read is an error naming it."""
     from lightstage.preprocess.downscale import decode_downscale
-    from lightstage.preprocess.processed import read_processed
+    from lightstage.records.processed import read_processed
 
     W, H = src.raw_size
     size = (W // src.factor, H // src.factor)

@@ -18,6 +18,7 @@ import numpy as np
 
 from lightstage.atomic import atomic_path
 from lightstage.errors import LightstageError
+from lightstage.tonemap import LUMA, luminance
 
 # The brightness ladder: per pixel, how many unsaturated frames are brighter than cutoff x 2^-k for each k
 # (one level per stop, 1 to 16 stops below the cutoff). It is a measurement grid, not a tuned threshold: it
@@ -29,18 +30,6 @@ LADDER_STOPS = tuple(range(1, 17))
 def ladder_levels(cutoff: float) -> np.ndarray:
     """(K,) float32 luminance levels of the ladder for a stage's saturation cutoff."""
     return (float(cutoff) * 2.0 ** -np.asarray(LADDER_STOPS, np.float64)).astype(np.float32)
-
-
-# Rec. 709 luminance weights of linear RGB.
-LUMA = (0.2126, 0.7152, 0.0722)
-_LUMA_MATRIX = np.array([LUMA], np.float32)
-
-
-def luminance(rgb: np.ndarray) -> np.ndarray:
-    """(h, w, 3) float32 linear RGB -> (h, w) float32 luminance (OpenCV channel transform, vectorised)."""
-    import cv2
-
-    return cv2.transform(np.ascontiguousarray(rgb, np.float32), _LUMA_MATRIX)
 
 
 @dataclass

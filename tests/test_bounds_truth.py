@@ -9,8 +9,8 @@ import shutil
 import cv2
 import numpy as np
 
-from lightstage.calibration.record import Calibration
 from lightstage.dataset.bounds import BoundsConfig, load_bounds, run_bounds
+from lightstage.records.calibration import Calibration
 from lightstage.workdir import WorkDir
 
 

@@ -19,9 +19,10 @@ from lightstage.calibration.bulbs import (
     find_bulbs,
 )
 from lightstage.calibration.light_rays import LightRay, gauge_points, locate_lights, ray_misfit
-from lightstage.calibration.record import Calibration
 from lightstage.cameras import look_at
-from lightstage.capture.layout import ViewId, open_capture
+from lightstage.capture.layout import open_capture
+from lightstage.ids import ViewId
+from lightstage.records.calibration import Calibration
 from lightstage.workdir import DOWNSCALE, WorkDir
 
 CLIP = 4.4

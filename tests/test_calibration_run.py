@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 
 from lightstage.calibration.export import colmap_image_name
-from lightstage.calibration.record import Calibration
 from lightstage.calibration.run import CalibrateConfig, run_calibrate
 from lightstage.cameras import opengl_c2w_to_opencv, pixel_rays, project
 from lightstage.capture.layout import open_capture
 from lightstage.errors import LightstageError
+from lightstage.records.calibration import Calibration
 from lightstage.workdir import DOWNSCALE, WorkDir
 
 

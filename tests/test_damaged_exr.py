@@ -22,7 +22,7 @@ IN_PROCESS_SCRIPT = textwrap.dedent(
     """
     import json, resource, sys
     from pathlib import Path
-    from lightstage.capture.frames import read_exr, read_exr_header, read_image
+    from lightstage.frames import read_exr, read_exr_header, read_image
     from lightstage.errors import LightstageError
 
     def outcome(fn, path):

@@ -176,7 +176,7 @@ def test_resample_preserves_energy_and_uniform_maps():
 
 
 def test_load_envmap_exr_and_hdr(tmp_path):
-    from lightstage.capture.frames import write_exr, write_image
+    from lightstage.frames import write_exr, write_image
 
     img = np.random.default_rng(3).uniform(0, 10, size=(64, 128, 3)).astype(np.float32)
     write_exr(tmp_path / "m.exr", img, half=False)

@@ -16,9 +16,9 @@ import torch
 from scipy.ndimage import gaussian_filter
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from lightstage.capture.frames import write_exr
 from lightstage.capture.presets import make_stage
 from lightstage.errors import LightstageError
+from lightstage.frames import write_exr
 from lightstage.tonemap import paper_tonemap, srgb_encode, tonemap
 from lightstage.training import evaluate
 from lightstage.training.config import EvalConfig

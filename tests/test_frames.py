@@ -5,15 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lightstage.capture.frames import (
-    read_exr,
-    read_exr_header,
-    read_image,
-    write_exr,
-    write_exr_planes,
-    write_image,
-)
 from lightstage.errors import LightstageError
+from lightstage.frames import read_exr, read_exr_header, read_image, write_exr, write_exr_planes, write_image
 
 
 @pytest.mark.parametrize("half", [True, False])
@@ -89,7 +82,7 @@ def test_other_formats_through_openimageio(tmp_path):
 
 def test_exr_writers_leave_the_callers_planes_alone(tmp_path):
     """OpenEXR's bindings swap the arrays of the dict they get for Channel objects; ours must not leak that."""
-    from lightstage.capture.frames import ExrPart, write_exr_parts
+    from lightstage.frames import ExrPart, write_exr_parts
 
     planes = {c: np.full((5, 7), i, np.float16) for i, c in enumerate("RGB")}
     write_exr_planes(tmp_path / "a.exr", planes, compression="rle")

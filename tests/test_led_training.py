@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 
 import lightstage.capture.simulate as sim
-from lightstage.capture.frames import read_exr
-from lightstage.capture.layout import FrameId
 from lightstage.capture.stage import load_stage
-from lightstage.preprocess.processed import read_processed_half, to_float
+from lightstage.frames import read_exr
+from lightstage.ids import FrameId
 from lightstage.preprocess.run import read_gt_mask
+from lightstage.records.processed import read_processed_half, to_float
 from lightstage.workdir import WorkDir
 
 # LEDs 30% apart in brightness (log-normal sigma) and 10% per channel: twice the `stage` realism's spread

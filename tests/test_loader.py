@@ -9,10 +9,11 @@ import pytest
 import torch
 
 from lightstage.dataset.fixtures import make_synthetic_work
-from lightstage.dataset.loader import BATCH_KEYS, RayLoader, RayShardDataset
-from lightstage.dataset.shards import ShardConfig, load_manifest, run_shard
+from lightstage.dataset.loader import RayLoader, RayShardDataset
+from lightstage.dataset.shards import ShardConfig, run_shard
 from lightstage.dataset.split import SplitConfig, run_split
 from lightstage.errors import LightstageError
+from lightstage.records.shards import BATCH_KEYS, load_manifest
 from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND
 
 B = 64

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lightstage.capture.frames import read_image as read_png
-from lightstage.capture.frames import write_image
+from lightstage.frames import read_image as read_png
+from lightstage.frames import write_image
 from lightstage.pipelines.demo import montage, pick_envmap, sky_envmap, write_report
 from lightstage.workdir import WorkDir
 

@@ -17,9 +17,10 @@ import numpy as np
 import pytest
 import yaml
 
-from lightstage.capture.frames import read_exr_header, write_exr, write_exr_planes
-from lightstage.capture.layout import FrameId, ViewId, open_capture
+from lightstage.capture.layout import open_capture
 from lightstage.errors import LightstageError
+from lightstage.frames import read_exr_header, write_exr, write_exr_planes
+from lightstage.ids import FrameId, ViewId
 from lightstage.preprocess.config import PreprocessConfig
 from lightstage.preprocess.downscale import (
     decode_downscale,
@@ -28,15 +29,15 @@ from lightstage.preprocess.downscale import (
     downscale_reference,
     saturation_half,
 )
-from lightstage.preprocess.processed import (
+from lightstage.preprocess.run import run_preprocess
+from lightstage.preprocess.stats import StatsAccumulator, direct_stats, merge_tree
+from lightstage.records.processed import (
     HalfRounder,
     processed_ok,
     read_processed,
     read_processed_half,
     write_processed,
 )
-from lightstage.preprocess.run import run_preprocess
-from lightstage.preprocess.stats import StatsAccumulator, direct_stats, merge_tree
 from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND, WorkDir
 
 CUTOFF = 4.4019
@@ -254,7 +255,7 @@ def test_segmentation_iou_against_ground_truth_on_tiny(tiny_run) -> None:
 def test_outputs_of_a_view(tiny_run, tiny_capture: Path) -> None:
     import cv2
 
-    from lightstage.capture.frames import read_exr
+    from lightstage.frames import read_exr
 
     work, _ = tiny_run
     view = ViewId("040", "cam01")
@@ -371,8 +372,8 @@ def test_sfm_image_of_a_view_is_the_trimmed_mean_of_raw_frames(tiny_run, tiny_ca
     rejected frames left out; sfm.png and sfm_mask.png match it and sfm_images.json says so."""
     import cv2
 
-    from lightstage.capture.frames import read_exr
     from lightstage.capture.layout import open_capture
+    from lightstage.frames import read_exr
     from lightstage.preprocess.sfm_image import spread_lights
 
     work, _ = tiny_run
@@ -398,7 +399,7 @@ def test_sfm_image_of_a_view_is_the_trimmed_mean_of_raw_frames(tiny_run, tiny_ca
 
 
 def test_sfm_image_at_processed_resolution(tiny_capture: Path, tmp_path: Path) -> None:
-    from lightstage.capture.frames import read_exr
+    from lightstage.frames import read_exr
 
     cap = _subset_capture(tiny_capture, tmp_path / "cap", groups=1, cameras=1)
     work = _work(tmp_path / "work", cap)

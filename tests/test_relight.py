@@ -184,8 +184,8 @@ def test_parse_lights_option():
 
 def _work_with_calibration(tmp_path):
     """A work dir with a one-view calibration (processed 32x24) and lights on a 1.5 m sphere."""
-    from lightstage.calibration.record import Calibration, ViewCalibration
-    from lightstage.capture.layout import ViewId
+    from lightstage.ids import ViewId
+    from lightstage.records.calibration import Calibration, ViewCalibration
     from lightstage.rig import TurntableAxis
 
     cam = orbit_camera(np.array([0.05, -0.02, 0.1]), 10.0, 15.0, 1.6, 30.0, (128, 96))
@@ -203,7 +203,7 @@ def _work_with_calibration(tmp_path):
 
 
 def test_run_relight_writes_images_and_error_vs_all(tmp_path):
-    from lightstage.capture.frames import read_exr, write_exr
+    from lightstage.frames import read_exr, write_exr
 
     work = _work_with_calibration(tmp_path)
     write_exr(tmp_path / "env.exr", _sky(64, 128).astype(np.float32), half=False)
@@ -284,7 +284,7 @@ def test_run_render_single_and_orbit(tmp_path):
         model=model,
     )
     assert single["frames"] == 1
-    from lightstage.capture.frames import read_exr
+    from lightstage.frames import read_exr
 
     img = read_exr(tmp_path / "r1" / "000_cam00_light000_001.exr").astype(np.float32)
     ref = model.image_from_camera(
@@ -328,7 +328,7 @@ def trained_work(tmp_path_factory):
 
 @pytest.mark.slow
 def test_cli_relight_render_mesh_on_a_trained_checkpoint(trained_work, tmp_path, capsys):
-    from lightstage.capture.frames import read_exr, write_exr
+    from lightstage.frames import read_exr, write_exr
     from lightstage.pipelines.cli import main
     from lightstage.training.mesh import density_grid, read_ply
     from lightstage.training.relight import load_model
@@ -385,7 +385,7 @@ def test_cli_relight_render_mesh_on_a_trained_checkpoint(trained_work, tmp_path,
 
 
 def test_hdr_outputs_keep_values_beyond_half_range(tmp_path):
-    from lightstage.capture.frames import read_exr, read_exr_header
+    from lightstage.frames import read_exr, read_exr_header
     from lightstage.training.relight import write_hdr
 
     img = np.full((4, 5, 3), 1.0e6, np.float32)
@@ -397,7 +397,7 @@ def test_hdr_outputs_keep_values_beyond_half_range(tmp_path):
 
 
 def test_repeated_cameras_get_distinct_outputs(tmp_path):
-    from lightstage.capture.frames import write_exr
+    from lightstage.frames import write_exr
 
     write_exr(tmp_path / "env.exr", _sky().astype(np.float32), half=False)
     config = RelightConfig(

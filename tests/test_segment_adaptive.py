@@ -12,15 +12,15 @@ import pytest
 import yaml
 
 import lightstage.capture.simulate as sim
-from lightstage.capture.frames import read_exr, read_image
-from lightstage.capture.layout import FrameId, ViewId
 from lightstage.capture.stage import load_stage, stage_from_dict
 from lightstage.errors import LightstageError
+from lightstage.frames import read_exr, read_image
+from lightstage.ids import FrameId, ViewId
 from lightstage.preprocess.config import PreprocessConfig
-from lightstage.preprocess.processed import read_processed_half, to_float
 from lightstage.preprocess.run import read_gt_mask, run_preprocess
 from lightstage.preprocess.segment import group_flags, iou, mask_flags, segment
 from lightstage.preprocess.stats import ViewStats
+from lightstage.records.processed import read_processed_half, to_float
 from lightstage.workdir import WorkDir
 
 

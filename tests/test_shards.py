@@ -8,24 +8,17 @@ import shutil
 import numpy as np
 import pytest
 
-from lightstage.calibration.record import Calibration
 from lightstage.cameras import pixel_rays
-from lightstage.capture.frames import read_exr
-from lightstage.capture.layout import FrameId, ViewId
 from lightstage.dataset.bounds import BoundsConfig, load_bounds, run_bounds
 from lightstage.dataset.fixtures import SPHERE_CENTRE, SPHERE_RADIUS, make_synthetic_work
-from lightstage.dataset.shards import (
-    RAY_DTYPE,
-    ShardConfig,
-    load_manifest,
-    run_shard,
-    sampling_zones,
-    verify_shards,
-    view_rays,
-)
+from lightstage.dataset.shards import ShardConfig, run_shard, sampling_zones, verify_shards, view_rays
 from lightstage.dataset.split import SplitConfig, load_split, run_split
 from lightstage.errors import LightstageError
+from lightstage.frames import read_exr
+from lightstage.ids import FrameId, ViewId
 from lightstage.pipelines.cli import main
+from lightstage.records.calibration import Calibration
+from lightstage.records.shards import RAY_DTYPE, load_manifest
 from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND, WorkDir
 
 CFG = ShardConfig(rays_per_image=64, rays_per_shard=256, workers=1, border_px=4)

@@ -10,12 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lightstage.capture.frames import read_exr, read_exr_header, read_image
-from lightstage.capture.layout import FrameId, open_capture
+from lightstage.capture.layout import open_capture
 from lightstage.capture.sim_render import saturation_value
 from lightstage.capture.sim_scene import Ellipsoid
 from lightstage.capture.simulate import SIM_PRESETS, load_scene, load_truth, render_clean, simulate_capture
 from lightstage.errors import LightstageError
+from lightstage.frames import read_exr, read_exr_header, read_image
+from lightstage.ids import FrameId
 
 
 def _mask(root: Path, group: str, camera: str) -> np.ndarray:

@@ -7,7 +7,6 @@ import json
 import numpy as np
 import pytest
 
-from lightstage.capture.layout import FrameId
 from lightstage.capture.presets import make_stage, paper_stage
 from lightstage.capture.stage import LightSpec, Stage
 from lightstage.dataset.split import (
@@ -20,6 +19,7 @@ from lightstage.dataset.split import (
     run_split,
 )
 from lightstage.errors import LightstageError
+from lightstage.ids import FrameId
 from lightstage.lights import paper_number_to_index
 from lightstage.pipelines.cli import main
 from lightstage.workdir import WorkDir

@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lightstage.capture.frames import check_pixels, write_exr
 from lightstage.capture.layout import CaptureInfo, open_capture, save_capture_info
 from lightstage.capture.presets import make_stage
 from lightstage.capture.validate import (
@@ -25,6 +24,7 @@ from lightstage.capture.validate import (
     validate_capture,
 )
 from lightstage.errors import LightstageError
+from lightstage.frames import check_pixels, write_exr
 from lightstage.pipelines.cli import main
 from lightstage.workdir import WorkDir
 
@@ -315,8 +315,8 @@ def write_layouts(folder: Path) -> list[Path]:
 
 
 def test_header_parser_on_valid_layouts_and_every_truncation(tmp_path):
-    from lightstage.capture.frames import read_exr, read_exr_header
     from lightstage.capture.validate import check_header
+    from lightstage.frames import read_exr, read_exr_header
 
     for path in write_layouts(tmp_path):
         header = read_exr_header(path)

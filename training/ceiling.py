@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lightstage.capture.layout import FrameId
 from lightstage.errors import LightstageError
+from lightstage.ids import FrameId
 from lightstage.workdir import WorkDir
 
 CLEAN_INFO = Path("ground_truth") / "clean.json"
@@ -78,7 +78,7 @@ class CleanRenders:
 
     def get(self, frame: FrameId | None, size: tuple[int, int]) -> np.ndarray | None:
         """(h, w, 3) float32 noise-free render of `frame` at size (w, h), or None when there is none."""
-        from lightstage.capture.frames import read_exr
+        from lightstage.frames import read_exr
         from lightstage.preprocess.downscale import downscale
 
         if frame is None or not self.path(frame).is_file():

@@ -3,17 +3,12 @@
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterator
-from pathlib import Path
 
-import numpy as np
 import torch
 
-from lightstage.cameras import PinholeCamera
-from lightstage.capture.layout import FrameId
 from lightstage.errors import LightstageError
-from lightstage.training.data import TestImage
+from lightstage.records.shards import TestImage, read_test_image, read_test_index
 from lightstage.workdir import WorkDir
 
 
@@ -63,54 +58,12 @@ class ShardSource:
             yield from loader
 
 
-def _test_index(work: WorkDir) -> list[dict]:
-    index = work.shards_dir / "test" / "index.json"
-    if not index.is_file():
-        return []
-    try:
-        return list(json.loads(index.read_text())["images"])
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        raise LightstageError(f"{index}: unreadable test index ({e})") from e
+def iter_test_images(work: WorkDir) -> Iterator[TestImage]:
+    """The test split's images in index order."""
+    for rec in read_test_index(work.shards_dir):
+        yield read_test_image(work.shards_dir / rec["file"])
 
 
 def count_test_images(work: WorkDir) -> int:
     """Number of test images listed in WORK/shards/test/index.json (0 when absent)."""
-    return len(_test_index(work))
-
-
-def read_test_image(path: Path) -> TestImage:
-    """One shards/test/*.npz (rgb, saturated, K, R, t, dist, width, height, light_direction; mask and the
-    frame's group/camera/light when written) as a TestImage."""
-    try:
-        with np.load(path) as z:
-            mask = np.array(z["mask"], bool) if "mask" in z.files else None
-            frame = (
-                FrameId(str(z["group"]), str(z["camera"]), int(z["light"]))
-                if {"group", "camera", "light"} <= set(z.files)
-                else None
-            )
-            cam = PinholeCamera(
-                np.array(z["K"], np.float64),
-                np.array(z["R"], np.float64),
-                np.array(z["t"], np.float64).reshape(3),
-                int(z["width"]),
-                int(z["height"]),
-                np.array(z["dist"], np.float64).reshape(-1),
-            )
-            return TestImage(
-                path.stem,
-                cam,
-                np.array(z["light_direction"], np.float64).reshape(3),
-                np.array(z["rgb"], np.float32),
-                np.array(z["saturated"], bool),
-                mask,
-                frame,
-            )
-    except (OSError, ValueError, KeyError) as e:
-        raise LightstageError(f"{path}: unreadable test image ({e})") from e
-
-
-def iter_test_images(work: WorkDir) -> Iterator[TestImage]:
-    """The test split's images in index order."""
-    for rec in _test_index(work):
-        yield read_test_image(work.shards_dir / rec["file"])
+    return len(read_test_index(work.shards_dir))

@@ -17,7 +17,7 @@ import numpy as np
 
 from lightstage.cameras import rotation_z
 from lightstage.errors import LightstageError
-from lightstage.preprocess.stats import LUMA
+from lightstage.tonemap import LUMA
 
 # Rec. 709 / sRGB primaries luminance weights, used for the median-cut energy.
 LUMINANCE = np.array(LUMA)  # float64: median cut sums many small energies
@@ -124,7 +124,7 @@ def load_envmap(
 ) -> EnvMap:
     """Read a lat-long HDR map (EXR via OpenEXR, .hdr and others via OpenImageIO), resampled to
     `resolution` = (width, height) (None keeps the file's resolution)."""
-    from lightstage.capture.frames import read_image
+    from lightstage.frames import read_image
 
     path = Path(path)
     img = read_image(path)

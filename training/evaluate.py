@@ -26,10 +26,10 @@ from tqdm import tqdm
 from lightstage.atomic import write_json_atomic
 from lightstage.cameras import PinholeCamera, camera_rays
 from lightstage.errors import LightstageError
+from lightstage.records.shards import TestImage
 from lightstage.tonemap import tonemap, tonemap_u8
 from lightstage.training.ceiling import CleanRenders
 from lightstage.training.config import EvalConfig
-from lightstage.training.data import TestImage
 from lightstage.training.metrics import CONVENTIONS, ceiling_scores, scores
 from lightstage.training.model import RelightModel
 from lightstage.workdir import WorkDir

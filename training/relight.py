@@ -172,7 +172,7 @@ def run_relight(
     """Relight a trained model with an envmap for each camera and light count; EXR + PNG per image, a picture
     of the lights per count, and OUT/relight.json with timings and the K-light error vs 'all' when asked."""
     from lightstage.atomic import write_json_atomic
-    from lightstage.capture.frames import write_image
+    from lightstage.frames import write_image
     from lightstage.tonemap import auto_exposure, tonemap_u8
     from lightstage.training.envmap import envmap_lights, load_envmap, parse_resolution, preview_with_lights
     from lightstage.training.render_views import downscale_camera, load_scene_info, parse_camera
@@ -253,7 +253,7 @@ def run_relight(
 
 def write_hdr(path: Path, img: np.ndarray, attributes: dict[str, str] | None = None) -> None:
     """Linear HDR EXR: float16 (the project's disk format) unless a value exceeds half's range, then float32."""
-    from lightstage.capture.frames import write_exr
+    from lightstage.frames import write_exr
 
     half = bool(np.all(np.abs(img) < 65000.0))
     write_exr(path, img, half=half, attributes=attributes)

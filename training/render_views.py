@@ -19,7 +19,7 @@ from lightstage.errors import LightstageError
 from lightstage.workdir import WorkDir
 
 if TYPE_CHECKING:
-    from lightstage.calibration.record import Calibration
+    from lightstage.records.calibration import Calibration
     from lightstage.training.relight import RelightableModel
 
 # Paper stage: lights on a sphere of radius 1.5 m around the scene centre (used without a calibration).
@@ -47,7 +47,7 @@ def load_scene_info(
 ) -> SceneInfo:
     """Calibration (when WORK has one), scene centre and light distance (the median calibrated light
     distance from the scene centre unless given; 1.5 m, the paper stage's radius, without a calibration)."""
-    from lightstage.calibration.record import Calibration
+    from lightstage.records.calibration import Calibration
 
     calib = Calibration.load(work.calibration) if work.calibration.is_file() else None
     centre = np.asarray(calib.scene_centre, np.float64) if calib is not None else np.zeros(3)
@@ -175,7 +175,7 @@ def parse_camera(spec: str, scene: SceneInfo, model: RelightableModel) -> NamedC
 
 
 def _calibrated_camera(spec: str, scene: SceneInfo) -> NamedCamera:
-    from lightstage.capture.layout import ViewId
+    from lightstage.ids import ViewId
 
     if scene.calibration is None:
         raise LightstageError(
@@ -373,7 +373,7 @@ def run_render(
     from tqdm import tqdm
 
     from lightstage.atomic import write_json_atomic
-    from lightstage.capture.frames import write_image
+    from lightstage.frames import write_image
     from lightstage.tonemap import auto_exposure, tonemap_u8
     from lightstage.training.relight import write_hdr
 

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from lightstage.cameras import PinholeCamera, look_at, pixel_centers, pixel_rays
-from lightstage.training.data import TestImage
+from lightstage.records.shards import TestImage
 from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND
 
 

@@ -20,10 +20,11 @@ import torch
 from tqdm import tqdm
 
 from lightstage.atomic import write_json_atomic
+from lightstage.records.shards import TestImage
 from lightstage.tonemap import auto_exposure
 from lightstage.training.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from lightstage.training.config import OptimConfig, TrainConfig
-from lightstage.training.data import BatchSource, TestImage
+from lightstage.training.data import BatchSource
 from lightstage.training.losses import total_loss
 from lightstage.training.model import RelightModel
 from lightstage.workdir import ZONE_FOREGROUND

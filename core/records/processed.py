@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lightstage.capture.frames import ExrPart, read_exr_header, write_exr_parts
 from lightstage.errors import LightstageError
+from lightstage.frames import ExrPart, read_exr_header, write_exr_parts
 
 CHANNELS = "RGBS"
 TILE = 256  # tile side of the processed frames; OpenEXR's per-chunk cost is negligible at 48 tiles per part

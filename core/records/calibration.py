@@ -16,8 +16,8 @@ import numpy as np
 
 from lightstage.atomic import write_json_atomic
 from lightstage.cameras import PinholeCamera, scale_intrinsics
-from lightstage.capture.layout import ViewId
 from lightstage.errors import LightstageError
+from lightstage.ids import ViewId
 from lightstage.rig import TurntableAxis
 from lightstage.workdir import DOWNSCALE
 
