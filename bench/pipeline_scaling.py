@@ -25,7 +25,7 @@ from lightstage.workdir import WorkDir
 
 def simulated_capture(out: Path, preset: str, seed: int) -> Path:
     """Simulate the capture once (reused by later runs of the benchmark)."""
-    from lightstage.capture.simulate import simulate_capture
+    from lightstage.simulator.simulate import simulate_capture
 
     capture = out / f"capture-{preset}-{seed}"
     marker = capture / ".bench-complete"

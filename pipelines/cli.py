@@ -18,7 +18,7 @@ from lightstage.errors import LightstageError
 # The packages that contribute subcommands, in the order of the pipeline.
 COMMAND_MODULES = (
     "lightstage.capture.cli",
-    "lightstage.capture.simulate_cli",
+    "lightstage.simulator.cli",
     "lightstage.preprocess.cli",
     "lightstage.calibration.cli",
     "lightstage.dataset.cli",

@@ -34,7 +34,7 @@ def _say(msg: str) -> None:
 def simulate(work: WorkDir, settings: Any, progress: bool = True) -> Path:
     """Simulate the demo capture (config `demo:` section) into WORK/capture; skipped when a finished one with
     the same settings is there."""
-    from lightstage.capture.simulate import simulate_capture
+    from lightstage.simulator.simulate import simulate_capture
 
     capture = work.root / "capture"
     marker = work.root / ".demo-capture.json"

@@ -125,7 +125,7 @@ SPECS: dict[str, StageSpec] = {
     )
 }
 
-_SKIP_MODULES = {"cli", "use_cli", "simulate_cli", "__main__"}
+_SKIP_MODULES = {"cli", "use_cli", "__main__"}
 
 
 @dataclass(frozen=True)

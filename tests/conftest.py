@@ -26,7 +26,7 @@ def shared_data() -> Path:
 @pytest.fixture(scope="session")
 def tiny_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A simulated `tiny` capture (seed 0), made once per test session. Treat it as read-only."""
-    from lightstage.capture.simulate import simulate_capture
+    from lightstage.simulator.simulate import simulate_capture
 
     return simulate_capture(tmp_path_factory.mktemp("sim") / "tiny", preset="tiny", seed=0, progress=False)
 

@@ -11,9 +11,9 @@ from scipy.special import erf
 from lightstage.calibration.light_rays import locate_lights
 from lightstage.calibration.probe import ProbeData, fit_ball_cone, probe_rays
 from lightstage.cameras import camera_center, look_at
-from lightstage.capture.sim_probe import specular_point
 from lightstage.errors import LightstageError
 from lightstage.preprocess.probe import ball_highlight, ball_outline
+from lightstage.simulator.probe import specular_point
 
 F = 2000.0
 K = np.array([[F, 0, 384.0], [0, F, 256.0], [0, 0, 1]])

@@ -240,7 +240,7 @@ SMALL_LIGHTS = "0-31:2"
 
 @pytest.fixture(scope="module")
 def small_sfm(tmp_path_factory: pytest.TempPathFactory) -> tuple[WorkDir, dict, Path]:
-    from lightstage.capture.simulate import simulate_capture
+    from lightstage.simulator.simulate import simulate_capture
 
     root = tmp_path_factory.mktemp("small")
     cap = simulate_capture(root / "capture", preset="small", seed=0, lights=SMALL_LIGHTS, progress=False)

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import lightstage.capture.simulate as sim
+import lightstage.simulator.simulate as sim
 from lightstage.capture.stage import load_stage
 from lightstage.frames import read_exr
 from lightstage.ids import FrameId
@@ -73,7 +73,7 @@ def test_unequal_leds_train_and_evaluate_like_equal_leds(tiny_capture, tmp_path,
     size, raw_size = (64, 43), (256, 172)
     cutoff = load_stage(leds / "stage.yaml").saturation
     # frames with a lens flare over the object are left out of the 1% checks: the simulator scales a flare by the
-    # LED's mean gain (grey, sim_render.add_flare), not per channel, so a tinted LED's flare keeps a tint after the
+    # LED's mean gain (grey, render.add_flare), not per channel, so a tinted LED's flare keeps a tint after the
     # per-channel division (7.5% in blue on this capture); they get the loose bound below
     flares = json.loads((leds / "ground_truth" / "nuisances.json").read_text())["flares"]
     flared = {(fl["group"], fl["camera"], fl["light"]) for fl in flares}

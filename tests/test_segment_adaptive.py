@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import yaml
 
-import lightstage.capture.simulate as sim
+import lightstage.simulator.simulate as sim
 from lightstage.capture.stage import load_stage, stage_from_dict
 from lightstage.errors import LightstageError
 from lightstage.frames import read_exr, read_image

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 
 from lightstage.capture.layout import open_capture
-from lightstage.capture.sim_render import saturation_value
-from lightstage.capture.sim_scene import Ellipsoid
-from lightstage.capture.simulate import SIM_PRESETS, load_scene, load_truth, render_clean, simulate_capture
 from lightstage.errors import LightstageError
 from lightstage.frames import read_exr, read_exr_header, read_image
 from lightstage.ids import FrameId
+from lightstage.simulator.render import saturation_value
+from lightstage.simulator.scene import Ellipsoid
+from lightstage.simulator.simulate import SIM_PRESETS, load_scene, load_truth, render_clean, simulate_capture
 
 
 def _mask(root: Path, group: str, camera: str) -> np.ndarray:
@@ -282,7 +282,7 @@ def test_shading_does_not_create_energy() -> None:
     """White albedo at the top of the head and on the thin fin's rim: the outgoing flux is <= the irradiance for
     a light along the normal, and integrated over all light directions it stays below Lambert's (pi)."""
     from lightstage.capture.presets import fibonacci_cap
-    from lightstage.capture.sim_scene import KIND_OBJECT, ViewHits, default_scene, shade
+    from lightstage.simulator.scene import KIND_OBJECT, ViewHits, default_scene, shade
 
     scene = default_scene()
     parts = {e.name: e for e in scene.body}

@@ -12,19 +12,19 @@ import pytest
 from lightstage.cameras import PinholeCamera, look_at
 from lightstage.capture.layout import open_capture
 from lightstage.capture.probe import PROBE_FILE, ProbeInfo, load_probe_info, save_probe_info
-from lightstage.capture.sim_probe import (
+from lightstage.errors import LightstageError
+from lightstage.frames import read_exr, read_exr_header
+from lightstage.rig import group_transform
+from lightstage.simulator.probe import (
     ProbeSettings,
     ball_centre_rig,
     probe_base_images,
     render_probe_olat,
     specular_point,
 )
-from lightstage.capture.sim_render import add_noise_and_clip
-from lightstage.capture.sim_scene import default_scene
-from lightstage.capture.simulate import load_truth, simulate_capture
-from lightstage.errors import LightstageError
-from lightstage.frames import read_exr, read_exr_header
-from lightstage.rig import group_transform
+from lightstage.simulator.render import add_noise_and_clip
+from lightstage.simulator.scene import default_scene
+from lightstage.simulator.simulate import load_truth, simulate_capture
 
 
 # ---- the contract ----------------------------------------------------------------------------------------------

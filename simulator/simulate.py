@@ -30,7 +30,12 @@ from lightstage.capture.layout import (
 )
 from lightstage.capture.presets import PAPER_RESOLUTION, make_stage
 from lightstage.capture.probe import save_probe_info
-from lightstage.capture.sim_probe import (
+from lightstage.capture.stage import Stage
+from lightstage.errors import LightstageError
+from lightstage.ids import ViewId
+from lightstage.records.calibration import Calibration, ViewCalibration
+from lightstage.rig import TurntableAxis, camera_pose_in_world, light_position_in_world
+from lightstage.simulator.probe import (
     PROBE_GROUND_TRUTH,
     ProbeSettings,
     probe_ground_truth,
@@ -38,13 +43,8 @@ from lightstage.capture.sim_probe import (
     render_probe_view,
     run_probe_job,
 )
-from lightstage.capture.sim_render import ViewJob, render_view, run_view_job
-from lightstage.capture.sim_scene import SimScene, cast_view, default_scene, led_intensities, render_hits
-from lightstage.capture.stage import Stage
-from lightstage.errors import LightstageError
-from lightstage.ids import ViewId
-from lightstage.records.calibration import Calibration, ViewCalibration
-from lightstage.rig import TurntableAxis, camera_pose_in_world, light_position_in_world
+from lightstage.simulator.render import ViewJob, render_view, run_view_job
+from lightstage.simulator.scene import SimScene, cast_view, default_scene, led_intensities, render_hits
 
 GROUND_TRUTH = "ground_truth"
 CONTACT_SHEET = "contact_sheet.png"
@@ -63,7 +63,7 @@ class SimPreset:
     clean_lights: int = 4  # lights (spread over the sphere) rendered clean for every view
     requires_selection: bool = False  # `paper`: too big to simulate whole
     camera_distance: float | None = None  # metres from the centre; None: on the light sphere (1.5 m)
-    realism: str = "clean"  # "stage": a real stage's lit backdrop, sensor, LEDs (sim_scene.default_scene)
+    realism: str = "clean"  # "stage": a real stage's lit backdrop, sensor, LEDs (scene.default_scene)
 
     @property
     def num_frames(self) -> int:
@@ -211,7 +211,7 @@ def simulate_capture(
 
     `probe`: also write the mirror-ball light-probe frames (probe/, see capture.probe) and
     ground_truth/probe.json, after the capture frames. `realism`: "stage" or "clean" (default: the preset's;
-    see sim_scene.default_scene)."""
+    see scene.default_scene)."""
     if preset not in SIM_PRESETS:
         raise LightstageError(f"unknown simulator preset {preset!r} (known: {', '.join(SIM_PRESETS)})")
     if not isinstance(seed, int) or seed < 0:
@@ -250,7 +250,7 @@ def simulate_capture(
     out.mkdir(parents=True, exist_ok=True)
     stage.save(out / STAGE_FILE)
     notes = {
-        "simulator": "lightstage.capture.simulate",
+        "simulator": "lightstage.simulator.simulate",
         "preset": preset,
         "seed": seed,
         "realism": realism,

@@ -33,8 +33,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    from lightstage.capture.simulate import simulate_capture
     from lightstage.errors import LightstageError
+    from lightstage.simulator.simulate import simulate_capture
 
     if args.workers is not None and args.workers < 1:
         raise LightstageError(f"--workers must be >= 1, got {args.workers}")

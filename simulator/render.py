@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from lightstage.cameras import PinholeCamera, pixel_rays
-from lightstage.capture.sim_scene import KIND_NONE, SimScene, ViewHits, cast_view, first_hit, shade
 from lightstage.frames import write_exr, write_image
+from lightstage.simulator.scene import KIND_NONE, SimScene, ViewHits, cast_view, first_hit, shade
 
 # An LED's beam (aimed at the stage centre) lights nothing beyond this angle off its axis.
 BEAM_HALF_ANGLE_DEG = 50.0

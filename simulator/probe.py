@@ -11,7 +11,7 @@ light on. Everything uses the TRUE geometry:
   and the ball does not hide it. The ball's disc reflects the dark stage interior (reflectance x background).
 - Ambient frame: the ball's disc (pixel coverage by supersampling around the silhouette) reflecting a uniform
   room radiance, blurred by the same PSF, over the background.
-- Noise, ADC and clipping as the capture frames (sim_render.add_noise_and_clip), seeded per frame with streams
+- Noise, ADC and clipping as the capture frames (render.add_noise_and_clip), seeded per frame with streams
   distinct from the capture's, so the bytes do not depend on the number of workers.
 """
 
@@ -28,14 +28,14 @@ from scipy.special import ndtr
 
 from lightstage.cameras import PinholeCamera, pixel_rays
 from lightstage.capture.probe import DEFAULT_AMBIENT_TEMPLATE, DEFAULT_PROBE_TEMPLATE, ProbeInfo
-from lightstage.capture.sim_render import POOL_MAX_VALUES, add_noise_and_clip, background_image
-from lightstage.capture.sim_scene import SimScene
 from lightstage.frames import write_exr
 from lightstage.rig import group_transform
+from lightstage.simulator.render import POOL_MAX_VALUES, add_noise_and_clip, background_image
+from lightstage.simulator.scene import SimScene
 
 if TYPE_CHECKING:
-    from lightstage.capture.simulate import TrueGeometry
     from lightstage.capture.stage import Stage
+    from lightstage.simulator.simulate import TrueGeometry
 
 PROBE_GROUND_TRUTH = "ground_truth/probe.json"
 
@@ -252,7 +252,7 @@ def ball_bulb_pixels(
     cam: PinholeCamera, centre: np.ndarray, radius: float, p: np.ndarray, bulb_radius: float
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """(rows, cols) of pixels showing the bulb of a light at world `p` that the ball does not hide, or None
-    (as sim_render.bulb_pixels, with the ball as the only occluder)."""
+    (as render.bulb_pixels, with the ball as the only occluder)."""
     uv, z = project_point(cam, p)
     if z <= 0:
         return None
@@ -458,7 +458,7 @@ def probe_jobs(
         radius_m=settings.radius_m,
         positions=tuple(positions),
         notes={
-            "simulator": "lightstage.capture.sim_probe",
+            "simulator": "lightstage.simulator.probe",
             "ball": f"chrome ball, radius {settings.radius_m} m, reflectance {settings.reflectance}",
             "position_groups": {p: p for p in positions},
             "exposure": "set so the lights' mirror highlights do not clip (brightest pixel about "
