@@ -3,6 +3,11 @@ DataLoader workers), and peak RSS against dataset size. Run: python bench/loader
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # tests/support: synthetic data
+
 import argparse
 import json
 import os
@@ -65,7 +70,8 @@ def peak_rss_child(shards: Path, batch_size: int) -> int:
 
 def shard_speed(tmp: Path, width: int = 2048, height: int = 1366, lights: int = 9) -> dict:
     """Seconds per training frame of `run_shard` (phase A + B, in-process) at the paper's processed resolution."""
-    from lightstage.dataset.fixtures import make_synthetic_work
+    from support.fixtures import make_synthetic_work
+
     from lightstage.dataset.shards import ShardConfig, run_shard
     from lightstage.dataset.split import SplitConfig, run_split
 
@@ -97,7 +103,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None, help="write results as JSON here")
     args = ap.parse_args()
 
-    from lightstage.dataset.fixtures import write_random_shards
+    from support.fixtures import write_random_shards
 
     results: dict = {"cpu_count": os.cpu_count(), "load_average": os.getloadavg(), "runs": [], "memory": []}
     with tempfile.TemporaryDirectory(prefix="loader-bench-") as tmp:

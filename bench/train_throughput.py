@@ -11,16 +11,21 @@ all-occupied start. Every config runs at the same batch, so the ratios printed a
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # tests/support: synthetic data
+
 import argparse
 import json
 import time
 
 import torch
+from support.synthetic import SyntheticSphere
 
 from lightstage.training.config import BUILTIN_CONFIGS, load_config
 from lightstage.training.losses import total_loss
 from lightstage.training.model import RelightModel
-from lightstage.training.synthetic import SyntheticSphere
 from lightstage.training.trainer import autocast_context
 
 

@@ -15,6 +15,8 @@ import pytest
 import torch
 from scipy.ndimage import gaussian_filter
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+from support.synthetic import SyntheticSphere
+from support.training import micro_config
 
 from lightstage.capture.presets import make_stage
 from lightstage.errors import LightstageError
@@ -25,8 +27,6 @@ from lightstage.training.config import EvalConfig
 from lightstage.training.evaluate import run_eval
 from lightstage.training.lpips import LPIPSVGG, lpips_or_none, vgg16_features
 from lightstage.training.metrics import ceiling_scores, image_metrics, psnr, scores, ssim
-from lightstage.training.synthetic import SyntheticSphere
-from lightstage.training.testing import micro_config
 from lightstage.training.trained import load_trained
 from lightstage.training.trainer import fit
 from lightstage.workdir import WorkDir
@@ -239,8 +239,8 @@ def test_run_eval_and_trained_model_interface(tmp_path):
 def test_cli_train_and_eval_on_dataset_shards(tmp_path):
     """The real wiring: dataset fixture -> split -> shards -> `lightstage train` -> `lightstage eval`."""
     import yaml
+    from support.fixtures import make_synthetic_work
 
-    from lightstage.dataset.fixtures import make_synthetic_work
     from lightstage.dataset.shards import ShardConfig, run_shard
     from lightstage.dataset.split import SplitConfig, run_split
     from lightstage.pipelines.cli import main

@@ -7,8 +7,8 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from support.fixtures import make_synthetic_work
 
-from lightstage.dataset.fixtures import make_synthetic_work
 from lightstage.dataset.loader import RayLoader, RayShardDataset
 from lightstage.dataset.shards import ShardConfig, run_shard
 from lightstage.dataset.split import SplitConfig, run_split

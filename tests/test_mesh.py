@@ -187,8 +187,9 @@ def test_transparent_field_and_bad_extension_are_errors(tmp_path):
 @pytest.fixture(scope="module")
 def trained_sphere_work(tmp_path_factory):
     """A work dir with a briefly trained micro checkpoint of the synthetic sphere (about 10 s on one core)."""
-    from lightstage.training.synthetic import SyntheticSphere
-    from lightstage.training.testing import micro_config
+    from support.synthetic import SyntheticSphere
+    from support.training import micro_config
+
     from lightstage.training.trainer import fit
 
     work = WorkDir.at(tmp_path_factory.mktemp("mesh") / "work")

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import pytest
 import torch
+from support.synthetic import SyntheticSphere
 
 from lightstage.errors import LightstageError
 from lightstage.training.config import TrainConfig, load_config
 from lightstage.training.hashgrid import HashGridEncoding
 from lightstage.training.heads import density_activation, exp_head
 from lightstage.training.model import RelightModel
-from lightstage.training.synthetic import SyntheticSphere
 
 
 def test_exp_head_nonnegative_and_finite_at_extremes():

@@ -313,8 +313,9 @@ def trained_work(tmp_path_factory):
     """A work dir with a (barely) trained tiny checkpoint of the model package's synthetic sphere."""
     pytest.importorskip("lightstage.training.trained")  # the model package's loader (load_trained)
     pytest.importorskip("lightstage.training.trainer")
+    from support.synthetic import SyntheticSphere
+
     from lightstage.training.config import load_config
-    from lightstage.training.synthetic import SyntheticSphere
     from lightstage.training.trainer import fit
 
     work = WorkDir.at(tmp_path_factory.mktemp("trained") / "work")

@@ -7,10 +7,10 @@ import shutil
 
 import numpy as np
 import pytest
+from support.fixtures import SPHERE_CENTRE, SPHERE_RADIUS, make_synthetic_work
 
 from lightstage.cameras import pixel_rays
 from lightstage.dataset.bounds import BoundsConfig, load_bounds, run_bounds
-from lightstage.dataset.fixtures import SPHERE_CENTRE, SPHERE_RADIUS, make_synthetic_work
 from lightstage.dataset.shards import ShardConfig, run_shard, sampling_zones, verify_shards, view_rays
 from lightstage.dataset.split import SplitConfig, load_split, run_split
 from lightstage.errors import LightstageError

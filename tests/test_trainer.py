@@ -8,12 +8,12 @@ import math
 import pytest
 import torch
 import torch.multiprocessing as mp
+from support.synthetic import SyntheticSphere
+from support.training import ddp_worker, micro_config
 
 from lightstage.training.checkpoint import load_checkpoint
 from lightstage.training.config import load_config
 from lightstage.training.evaluate import evaluate_images
-from lightstage.training.synthetic import SyntheticSphere
-from lightstage.training.testing import ddp_worker, micro_config
 from lightstage.training.trained import load_trained
 from lightstage.training.trainer import fit, lr_factor
 from lightstage.workdir import WorkDir

@@ -7,8 +7,8 @@ from pathlib import Path
 import torch
 
 from lightstage.training.config import TrainConfig, load_config
-from lightstage.training.synthetic import SyntheticSphere
 from lightstage.training.trainer import fit
+from support.synthetic import SyntheticSphere
 
 
 def micro_config(steps: int, batch: int = 64, **extra) -> TrainConfig:
