@@ -29,6 +29,7 @@ from lightstage.capture.layout import Capture, open_capture
 from lightstage.errors import LightstageError
 from lightstage.ids import ViewId
 from lightstage.records.calibration import Calibration, ViewCalibration
+from lightstage.records.ground_truth import GroundTruth
 from lightstage.rig import light_position_in_world
 from lightstage.workdir import DOWNSCALE, WorkDir
 
@@ -139,14 +140,6 @@ class CalibrateConfig:
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def _capture_of(work: WorkDir) -> Capture:
-    if not work.capture_pointer.is_file():
-        raise LightstageError(
-            f"{work.capture_pointer}: missing (run `lightstage preprocess` on the capture first)"
-        )
-    return open_capture(Path(work.capture_pointer.read_text().strip()))
-
-
 def load_intrinsics(path: str | Path, camera_ids: list[str]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Per-camera raw-resolution (K, dist) from a `calibrate-intrinsics` JSON file."""
     path = Path(path)
@@ -165,10 +158,6 @@ def load_intrinsics(path: str | Path, camera_ids: list[str]) -> dict[str, tuple[
     if unknown:
         raise LightstageError(f"{path}: cameras {unknown} are not in the stage")
     return out
-
-
-def ground_truth_path(capture: Capture) -> Path:
-    return capture.root / "ground_truth" / "geometry.json"
 
 
 def _light_floor(capture: Capture, truth: Calibration) -> Calibration:
@@ -548,7 +537,7 @@ def run_calibrate(
             print(msg, flush=True)
 
     t0 = time.perf_counter()
-    capture = _capture_of(work)
+    capture = open_capture(work.capture_path())
     stage = capture.stage
     intr = {c.id: (c.K, c.distortion if c.distortion is not None else np.zeros(5)) for c in stage.cameras}
     if config.intrinsics:
@@ -574,13 +563,13 @@ def run_calibrate(
         write_colmap_model(calib, work.calibration_dir / "colmap", points, colors)
         write_transforms(calib, work.calibration_dir / "transforms.json", work)
         plot_layout(calib, work.calibration_dir / "layout.png")
-        gt = ground_truth_path(capture)
+        gt = GroundTruth.of(capture.root).geometry
         if gt.is_file():
             from lightstage.calibration.evaluate import compare_to_truth
 
             truth = Calibration.load(gt)
             report["ground_truth"] = compare_to_truth(calib, truth, _light_floor(capture, truth))
-            probe_truth = capture.root / "ground_truth" / "probe.json"
+            probe_truth = GroundTruth.of(capture.root).probe
             if "probe" in stats and probe_truth.is_file():
                 report["ground_truth"]["probe_ball_centre_error_mm"] = _ball_centre_errors(
                     stats["probe"], probe_truth

@@ -706,20 +706,6 @@ class ValidateConfig:
         return cfg
 
 
-def read_capture_pointer(work: Any) -> Path:
-    """The capture directory recorded in WORK/capture.txt."""
-    pointer = Path(work.capture_pointer)
-    try:
-        text = pointer.read_text().strip()
-    except OSError:
-        raise LightstageError(
-            f"{pointer}: missing (the work directory does not name its raw capture)"
-        ) from None
-    if not text:
-        raise LightstageError(f"{pointer}: empty (expected the path of the raw capture)")
-    return Path(text)
-
-
 def run_validate(
     work: Any, config: ValidateConfig, client: Any = None, progress: bool = True
 ) -> dict[str, Any]:
@@ -730,7 +716,7 @@ def run_validate(
     Resumable: a deep scan reuses the earlier manifest's per-frame results for files whose size and mtime
     are unchanged; header checks always run again (they are cheap and the capture may have been repaired).
     """
-    capture = open_capture(read_capture_pointer(work))
+    capture = open_capture(work.capture_path())
     reuse = load_manifest_records(work.manifest, capture.root) if config.deep else None
     result = scan_capture(
         capture,

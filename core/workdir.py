@@ -24,7 +24,10 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from lightstage.atomic import write_text_atomic
+from lightstage.errors import LightstageError
 from lightstage.ids import FrameId, ViewId
+from lightstage.records.ground_truth import GroundTruth
 
 # Zone labels of the per-view zone map (used by preprocess, shards and the sampler).
 ZONE_BACKGROUND = 0
@@ -54,6 +57,39 @@ class WorkDir:
     @property
     def capture_pointer(self) -> Path:
         return self.root / "capture.txt"
+
+    def capture_path(self) -> Path:
+        """The raw capture this work directory processes (WORK/capture.txt), or one clear error."""
+        pointer = self.capture_pointer
+        try:
+            text = pointer.read_text().strip()
+        except FileNotFoundError:
+            raise LightstageError(
+                f"{pointer}: missing (this work directory names no capture; give it: "
+                f"lightstage run CAPTURE --work {self.root})"
+            ) from None
+        except OSError as e:
+            raise LightstageError(f"{pointer}: unreadable ({e.strerror or e})") from None
+        if not text:
+            raise LightstageError(f"{pointer}: empty (it must hold the path of the raw capture)")
+        return Path(text)
+
+    def link_capture(self, capture: str | os.PathLike[str]) -> Path:
+        """Record `capture` (made absolute) as this work directory's raw capture; atomic, unchanged if same."""
+        path = Path(capture).resolve()
+        if not path.is_dir():
+            raise LightstageError(f"{capture}: capture directory does not exist")
+        if self.root.exists() and not self.root.is_dir():
+            raise LightstageError(f"{self.root}: not a directory (the work directory must be a folder)")
+        current = self.capture_pointer.read_text().strip() if self.capture_pointer.is_file() else None
+        if current != str(path):
+            self.root.mkdir(parents=True, exist_ok=True)
+            write_text_atomic(self.capture_pointer, f"{path}\n")
+        return path
+
+    def ground_truth(self) -> GroundTruth:
+        """The ground truth beside the capture (simulated captures only; `.exists` says whether there is any)."""
+        return GroundTruth.of(self.capture_path())
 
     # preprocess
     @property

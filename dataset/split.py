@@ -636,12 +636,7 @@ def work_stage(work: WorkDir, preset: str | None = None) -> Stage:
         return stage_preset(preset)
     from lightstage.capture.layout import open_capture
 
-    if not work.capture_pointer.is_file():
-        raise LightstageError(
-            f"{work.capture_pointer}: missing (no capture linked to this work directory); "
-            "run the capture/preprocess stage first or pass --stage-preset"
-        )
-    return open_capture(work.capture_pointer.read_text().strip()).stage
+    return open_capture(work.capture_path()).stage
 
 
 def rejected_frames(work: WorkDir) -> set[FrameId]:

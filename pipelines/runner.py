@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from lightstage.atomic import write_json_atomic, write_text_atomic
+from lightstage.atomic import write_json_atomic
 from lightstage.errors import LightstageError
 from lightstage.pipelines import records
 from lightstage.pipelines.config import PipelineConfig, config_as_data, config_hash
@@ -59,25 +59,6 @@ def select_stages(
     return list(STAGE_ORDER[start:stop]), bool(from_stage)
 
 
-def write_capture_pointer(work: WorkDir, capture: str | os.PathLike[str]) -> Path:
-    """Record the raw capture this work directory processes (WORK/capture.txt, absolute path)."""
-    path = Path(capture).resolve()
-    if not path.is_dir():
-        raise LightstageError(f"{capture}: capture directory does not exist")
-    current = work.capture_pointer.read_text().strip() if work.capture_pointer.is_file() else None
-    if current != str(path):
-        write_text_atomic(work.capture_pointer, f"{path}\n")
-    return path
-
-
-def read_capture_pointer(work: WorkDir) -> Path:
-    if not work.capture_pointer.is_file():
-        raise LightstageError(
-            f"{work.capture_pointer}: missing (give the capture: lightstage run CAPTURE --work WORK)"
-        )
-    return Path(work.capture_pointer.read_text().strip())
-
-
 class PipelineRunner:
     """Runs the selected stages of one work directory; dask is started only when a batch stage must run."""
 
@@ -102,7 +83,7 @@ class PipelineRunner:
     # ---- fingerprints ----
     def capture_fingerprint(self) -> dict[str, Any]:
         if self._capture_fp is None:
-            root = read_capture_pointer(self.work)
+            root = self.work.capture_path()
             self._capture_fp = {"path": str(root), **records.fingerprint([root]).to_dict()}
         return self._capture_fp
 
@@ -317,9 +298,9 @@ def run_pipeline(
     work.root.mkdir(parents=True, exist_ok=True)
     capture = capture or config.capture
     if capture is not None:
-        write_capture_pointer(work, capture)
+        work.link_capture(capture)
     else:
-        read_capture_pointer(work)
+        work.capture_path()
     runner = PipelineRunner(work, config, client=client, progress=progress, log=log)
     return runner.run(from_stage=from_stage, only=only, clean=clean, to_stage=to_stage)
 

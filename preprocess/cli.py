@@ -56,7 +56,6 @@ def _preprocess(args: argparse.Namespace) -> int:
     import json
     import os
 
-    from lightstage.atomic import write_text_atomic
     from lightstage.capture.layout import open_capture
     from lightstage.errors import LightstageError
     from lightstage.preprocess.run import run_preprocess
@@ -68,8 +67,7 @@ def _preprocess(args: argparse.Namespace) -> int:
     if args.workers < 0:
         raise LightstageError(f"--workers: expected an integer >= 0, got {args.workers}")
     work = WorkDir.at(args.work)
-    work.root.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(work.capture_pointer, str(capture.root.resolve()) + "\n")
+    work.link_capture(capture.root)
     progress = not args.no_progress
     if args.workers or args.scheduler:
         from lightstage.pipelines.cluster import ClusterSettings, dask_client

@@ -28,6 +28,7 @@ from lightstage.capture.layout import Capture, open_capture
 from lightstage.errors import LightstageError
 from lightstage.ids import FrameId, ViewId
 from lightstage.preprocess.config import PreprocessConfig
+from lightstage.records.ground_truth import GroundTruth
 from lightstage.workdir import DOWNSCALE, WorkDir
 
 __all__ = ["PreprocessConfig", "run_preprocess", "process_chunk", "process_view"]
@@ -35,7 +36,6 @@ __all__ = ["PreprocessConfig", "run_preprocess", "process_chunk", "process_view"
 VIEW_RECORD = "view.json"
 PARTIALS = "partials"
 PREVIEWS = "previews.json"
-GT_MASKS = Path("ground_truth") / "masks"
 
 
 # ---- jobs and records (small, picklable) -----------------------------------------------------------------
@@ -485,7 +485,7 @@ def run_preprocess(
     if isinstance(config, dict):
         config = PreprocessConfig.from_dict(config)
     config.validate()
-    capture = _open_pointed_capture(work)
+    capture = open_capture(work.capture_path())
     stage = capture.stage
     if stage.width % DOWNSCALE or stage.height % DOWNSCALE:
         raise LightstageError(
@@ -498,7 +498,7 @@ def run_preprocess(
     chunk_jobs: dict[ViewId, list[ChunkJob]] = {}
     for view in capture.views():
         raw = tuple(str(capture.frame_path(FrameId(view.group, view.camera, lt))) for lt in lights)
-        gt = capture.root / GT_MASKS / view.group / f"{view.camera}.png"
+        gt = GroundTruth.of(capture.root).mask(view)
         chunks = _chunks(lights, config.chunk_lights)
         view_jobs.append(
             ViewJob(
@@ -613,16 +613,6 @@ def _add_group_flags(work: WorkDir, records: dict[ViewId, ViewRecord], config: P
             if flags != rec.flags:
                 rec.flags = flags
                 write_json_atomic(work.view_dir(rec.view) / VIEW_RECORD, asdict(rec))
-
-
-def _open_pointed_capture(work: WorkDir) -> Capture:
-    pointer = work.capture_pointer
-    if not pointer.is_file():
-        raise LightstageError(f"{pointer}: missing (run `lightstage preprocess CAPTURE --work {work.root}`)")
-    text = pointer.read_text().strip()
-    if not text:
-        raise LightstageError(f"{pointer}: empty (it must hold the capture directory)")
-    return open_capture(text)
 
 
 def _bar(total: int, desc: str, enabled: bool) -> Any:

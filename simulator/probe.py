@@ -37,8 +37,6 @@ if TYPE_CHECKING:
     from lightstage.capture.stage import Stage
     from lightstage.simulator.simulate import TrueGeometry
 
-PROBE_GROUND_TRUTH = "ground_truth/probe.json"
-
 
 @dataclass(frozen=True)
 class ProbeSettings:
@@ -536,7 +534,6 @@ def probe_ground_truth(
 
 
 __all__ = [
-    "PROBE_GROUND_TRUTH",
     "ProbeSettings",
     "ProbeJob",
     "ProbeViewRecord",

@@ -15,6 +15,8 @@ import numpy as np
 
 from lightstage.cameras import PinholeCamera, pixel_rays
 from lightstage.frames import write_exr, write_image
+from lightstage.ids import ViewId
+from lightstage.records.ground_truth import CLEAN_TEMPLATE, GroundTruth
 from lightstage.simulator.scene import KIND_NONE, SimScene, ViewHits, cast_view, first_hit, shade
 
 # An LED's beam (aimed at the stage centre) lights nothing beyond this angle off its axis.
@@ -286,9 +288,7 @@ def render_view(job: ViewJob) -> ViewRecord:
     scene = job.scene
     hits: ViewHits = cast_view(scene, cam.K, cam.R, cam.t, cam.width, cam.height)
     mask = hits.mask()
-    write_image(
-        job.root / "ground_truth" / "masks" / job.group / f"{job.camera}.png", mask.astype(np.uint8) * 255
-    )
+    write_image(GroundTruth.of(job.root).mask(ViewId(job.group, job.camera)), mask.astype(np.uint8) * 255)
     bg = background_image(cam, scene.nuisances.background)
     bg[mask] = 0.0
     backdrop = None
@@ -313,7 +313,7 @@ def render_view(job: ViewJob) -> ViewRecord:
         if lid in job.clean_lights:
             clean = np.zeros((cam.height * cam.width, 3), np.float32)
             clean[hits.index] = radiance
-            path = job.root / "ground_truth" / "clean" / job.group / job.camera / f"{lid:03d}.exr"
+            path = job.root / CLEAN_TEMPLATE.format(group=job.group, camera=job.camera, light=lid)
             write_exr(path, clean.reshape(cam.height, cam.width, 3), half=False, compression=job.compression)
         img = bg.copy()
         if backdrop is not None:

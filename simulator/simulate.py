@@ -34,9 +34,9 @@ from lightstage.capture.stage import Stage
 from lightstage.errors import LightstageError
 from lightstage.ids import ViewId
 from lightstage.records.calibration import Calibration, ViewCalibration
+from lightstage.records.ground_truth import CLEAN_TEMPLATE, FOLDER, GroundTruth
 from lightstage.rig import TurntableAxis, camera_pose_in_world, light_position_in_world
 from lightstage.simulator.probe import (
-    PROBE_GROUND_TRUTH,
     ProbeSettings,
     probe_ground_truth,
     probe_jobs,
@@ -46,7 +46,6 @@ from lightstage.simulator.probe import (
 from lightstage.simulator.render import ViewJob, render_view, run_view_job
 from lightstage.simulator.scene import SimScene, cast_view, default_scene, led_intensities, render_hits
 
-GROUND_TRUTH = "ground_truth"
 CONTACT_SHEET = "contact_sheet.png"
 
 
@@ -254,7 +253,7 @@ def simulate_capture(
         "preset": preset,
         "seed": seed,
         "realism": realism,
-        "ground_truth": GROUND_TRUTH,
+        "ground_truth": FOLDER,
         "source_light_indices": lsel if len(lsel) != len(full.lights) else "all",
     }
     save_capture_info(
@@ -262,8 +261,7 @@ def simulate_capture(
     )
     clean = clean_light_choice(len(stage.lights), p.clean_lights)
     clean_cams = clean_camera_choice(stage.camera_ids)
-    gt = out / GROUND_TRUTH
-    _write_ground_truth(gt, stage, truth, scene, clean, seed, preset, clean_cams)
+    _write_ground_truth(GroundTruth.of(out), stage, truth, scene, clean, seed, preset, clean_cams)
 
     jobs = [
         ViewJob(
@@ -303,7 +301,7 @@ def simulate_capture(
             for lt, s in r.flares.items()
         ],
     }
-    write_json_atomic(gt / "nuisances.json", nuisances)
+    write_json_atomic(GroundTruth.of(out).nuisances, nuisances)
     write_contact_sheet(out, stage, clean)
     if progress:
         n = len(jobs) * len(lsel)
@@ -342,7 +340,7 @@ def _simulate_probe(
     records = _run_jobs(jobs, pool, progress, render_probe_view, run_probe_job, "simulate probe")
     save_probe_info(info, out)
     write_json_atomic(
-        out / PROBE_GROUND_TRUTH, probe_ground_truth(truth, settings, list(info.positions), records)
+        GroundTruth.of(out).probe, probe_ground_truth(truth, settings, list(info.positions), records)
     )
     if progress:
         n = len(jobs) * (len(lsel) + 1)
@@ -400,7 +398,7 @@ def _run_jobs(
 
 
 def _write_ground_truth(
-    gt: Path,
+    gt: GroundTruth,
     stage: Stage,
     truth: TrueGeometry,
     scene: SimScene,
@@ -421,20 +419,20 @@ def _write_ground_truth(
         light_positions={g.name: truth.light_positions(g.name) for g in stage.groups},
         axis=truth.axis,
         yaws_deg={g.name: truth.yaws_deg[g.name] for g in stage.groups},
-    ).save(gt / "geometry.json")
+    ).save(gt.geometry)
     sc = scene.to_dict()
     sc["seed"] = seed
     sc["preset"] = preset
     sc["units"] = "m; radiance in the stage's linear units (capture exposure_scale 1)"
-    write_json_atomic(gt / "scene.json", sc)
+    write_json_atomic(gt.scene, sc)
     write_json_atomic(
-        gt / "clean.json",
+        gt.clean_info,
         {
             "lights": clean,
             "views": "all",
             # and every light of these cameras in every group (the test views: evaluation's ceiling)
             "every_light_cameras": list(clean_cameras),
-            "path_template": "ground_truth/clean/{group}/{camera}/{light:03d}.exr",
+            "path_template": CLEAN_TEMPLATE,
             "content": "noise-free, unclipped float32 radiance of object + stand; background, bulbs, flare = 0",
         },
     )
@@ -477,7 +475,7 @@ def write_contact_sheet(root: Path, stage: Stage, lights: list[int], max_views: 
 # ---- ground-truth access for tests and scorers -------------------------------------------------------------
 def load_scene(capture_root: Path) -> SimScene:
     """The SimScene of a simulated capture (from ground_truth/scene.json)."""
-    path = Path(capture_root) / GROUND_TRUTH / "scene.json"
+    path = GroundTruth.of(capture_root).scene
     try:
         return SimScene.from_dict(json.loads(path.read_text()))
     except OSError as e:
@@ -488,7 +486,7 @@ def load_scene(capture_root: Path) -> SimScene:
 
 def load_truth(capture_root: Path) -> Calibration:
     """The true geometry of a simulated capture (ground_truth/geometry.json)."""
-    return Calibration.load(Path(capture_root) / GROUND_TRUTH / "geometry.json")
+    return Calibration.load(GroundTruth.of(capture_root).geometry)
 
 
 def render_clean(

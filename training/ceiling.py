@@ -23,7 +23,6 @@ from lightstage.errors import LightstageError
 from lightstage.ids import FrameId
 from lightstage.workdir import WorkDir
 
-CLEAN_INFO = Path("ground_truth") / "clean.json"
 REAL_CAPTURE = (
     "unavailable: no noise-free render of the test frames (a real capture); a perfect prediction, the target "
     "itself, scores inf"
@@ -48,13 +47,12 @@ class CleanRenders:
         """(renders, note) for the capture WORK/capture.txt names; (None, "unavailable: why") without them."""
         from lightstage.capture.layout import CAPTURE_FILE, STAGE_FILE, load_capture_info
         from lightstage.capture.stage import load_stage
-        from lightstage.capture.validate import read_capture_pointer
 
         try:
-            capture = read_capture_pointer(work)
+            truth = work.ground_truth()
         except LightstageError as e:
             return None, f"unavailable: {e}"
-        info = capture / CLEAN_INFO
+        capture, info = truth.capture, truth.clean_info
         if not info.is_file():
             return None, REAL_CAPTURE
         try:

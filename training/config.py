@@ -1,23 +1,19 @@
 """Typed training configuration (model, losses, optimiser, evaluation) loaded from YAML.
 
-`TrainConfig.from_dict` rejects unknown keys and wrong types with a LightstageError naming the key, so a typo
-in a config file never silently falls back to a default. Built-in configs: `paper` (the paper's Sec. 3.4
+`TrainConfig.from_dict` is the strict loader (`lightstage.config`): unknown keys, wrong types and out-of-range
+values are a ConfigError naming the key, so a typo in a config file never silently falls back to a default. Built-in configs: `paper` (the paper's Sec. 3.4
 architecture), `paper-lite` (its density MLP with a small h head on a shared trunk), `fast`, `tiny`.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import types
-import typing
 from dataclasses import asdict, dataclass
 from dataclasses import field as dc_field
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
-import yaml
-
+from lightstage.config import ConfigError, load, parse_yaml, require, require_choice
 from lightstage.errors import LightstageError
 
 BUILTIN_CONFIGS = ("paper", "paper-lite", "fast", "cpu", "tiny")
@@ -42,6 +38,13 @@ class MLPConfig:
     pos_freqs: int = 10
     dir_freqs: int = 4
     light_freqs: int = 4
+
+    def __post_init__(self) -> None:
+        require(0 < self.skip < self.depth or self.skip == 0, "skip", "must be 0 or inside the trunk")
+        require_choice(self.h_mlp, "h_mlp", ("head", "separate"))
+        require(self.h_depth >= 1, "h_depth", f"must be >= 1, got {self.h_depth}")
+        require(self.h_width >= 1, "h_width", f"must be >= 1, got {self.h_width}")
+        require(0 < self.h_skip < self.h_depth or self.h_skip == 0, "h_skip", "must be 0 or inside the h MLP")
 
 
 @dataclass
@@ -94,6 +97,12 @@ class ModelConfig:
     # its pixel. Training always evaluates every kept sample.
     min_weight: float = 0.0
 
+    def __post_init__(self) -> None:
+        require_choice(self.field, "field", ("mlp", "hashgrid"))
+        require_choice(self.density_activation, "density_activation", ("softplus", "relu"))
+        require(self.n_fine >= 1, "n_fine", f"must be >= 1, got {self.n_fine}")
+        require(self.n_coarse >= 0, "n_coarse", f"must be >= 0, got {self.n_coarse}")
+
 
 @dataclass
 class LossConfig:
@@ -104,6 +113,9 @@ class LossConfig:
     epsilon: float = 1e-3  # assumes linear HDR with object pixels ~0.05-1 (the preprocess scale)
     mask: float = 1e-4
     saturated_one_sided: bool = True
+
+    def __post_init__(self) -> None:
+        require(self.epsilon > 0, "epsilon", f"must be > 0, got {self.epsilon:g}")
 
 
 @dataclass
@@ -123,6 +135,17 @@ class OptimConfig:
     grad_clip: float = 1.0  # max global grad norm; 0 disables
     precision: str = "bf16"  # bf16 | fp16 | fp32 (autocast is used on CUDA only; CPU always fp32)
 
+    def __post_init__(self) -> None:
+        require_choice(self.schedule, "schedule", ("exponential", "cosine"))
+        require_choice(self.precision, "precision", ("bf16", "fp16", "fp32"))
+        for key in ("steps", "batch_rays"):
+            require(getattr(self, key) >= 1, key, f"must be >= 1, got {getattr(self, key)}")
+        require(self.lr > 0, "lr", f"must be > 0, got {self.lr:g}")
+        for key in ("lr_final", "adam_eps", "weight_decay", "grad_clip", "warmup_steps"):
+            require(getattr(self, key) >= 0, key, f"must be >= 0, got {getattr(self, key):g}")
+        for key in ("beta1", "beta2"):
+            require(0 <= getattr(self, key) < 1, key, f"must be in [0, 1), got {getattr(self, key):g}")
+
 
 @dataclass
 class EvalConfig:
@@ -141,8 +164,8 @@ class EvalConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> EvalConfig:
-        """Build from a dict (the `eval` stage's own section); unknown keys or wrong types raise LightstageError."""
-        return _from_dict(cls, d or {}, "eval.")
+        """Build from a dict (the `eval` stage's own section) with the strict loader (ConfigError naming the key)."""
+        return load(cls, d)
 
 
 @dataclass
@@ -159,83 +182,18 @@ class TrainConfig:
     checkpoint_every: int = 1000
     loader_workers: int = 0
 
+    def __post_init__(self) -> None:
+        for key in ("checkpoint_every", "log_every"):
+            require(getattr(self, key) >= 1, key, f"must be >= 1, got {getattr(self, key)}")
+        require(self.loader_workers >= 0, "loader_workers", f"must be >= 0, got {self.loader_workers}")
+
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> TrainConfig:
-        """Build from a nested dict; unknown keys or wrong types raise LightstageError naming the key."""
-        cfg = _from_dict(cls, d or {}, "")
-        _validate(cfg)
-        return cfg
+        """Build from a nested dict with the strict loader (ConfigError naming the dotted key)."""
+        return load(cls, d)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
-
-
-def _from_dict(cls: type, d: Any, prefix: str) -> Any:
-    if not isinstance(d, dict):
-        raise LightstageError(f"config: {prefix or 'top level'} must be a mapping, got {type(d).__name__}")
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(d) - names)
-    if unknown:
-        raise LightstageError(
-            f"config: unknown key {prefix}{unknown[0]} (allowed: {', '.join(sorted(names))})"
-        )
-    kwargs = {}
-    for key, value in d.items():
-        kwargs[key] = _coerce(hints[key], value, f"{prefix}{key}")
-    return cls(**kwargs)
-
-
-def _coerce(tp: Any, value: Any, key: str) -> Any:
-    if dataclasses.is_dataclass(tp):
-        return _from_dict(tp, value, key + ".")
-    if isinstance(tp, types.UnionType) or typing.get_origin(tp) is typing.Union:
-        for option in typing.get_args(tp):
-            try:
-                return _coerce(option, value, key)
-            except LightstageError:
-                continue
-        raise LightstageError(f"config: {key} has the wrong type ({type(value).__name__})")
-    if tp is type(None):
-        if value is None:
-            return None
-    elif tp is bool:
-        if isinstance(value, bool):
-            return value
-    elif tp is int:
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-    elif tp is float:
-        if isinstance(value, int | float) and not isinstance(value, bool):
-            return float(value)
-    elif tp is str:
-        if isinstance(value, str):
-            return value
-    raise LightstageError(f"config: {key} must be {getattr(tp, '__name__', tp)}, got {value!r}")
-
-
-def _validate(cfg: TrainConfig) -> None:
-    m = cfg.model
-    checks = [
-        (m.field in ("mlp", "hashgrid"), "model.field must be mlp or hashgrid"),
-        (m.density_activation in ("softplus", "relu"), "model.density_activation must be softplus or relu"),
-        (m.n_fine >= 1 and m.n_coarse >= 0, "model.n_fine must be >= 1 and model.n_coarse >= 0"),
-        (0 < m.mlp.skip < m.mlp.depth or m.mlp.skip == 0, "model.mlp.skip must be 0 or inside the trunk"),
-        (m.mlp.h_mlp in ("head", "separate"), "model.mlp.h_mlp must be head or separate"),
-        (m.mlp.h_depth >= 1 and m.mlp.h_width >= 1, "model.mlp.h_depth and model.mlp.h_width must be >= 1"),
-        (
-            0 < m.mlp.h_skip < m.mlp.h_depth or m.mlp.h_skip == 0,
-            "model.mlp.h_skip must be 0 or inside the h MLP",
-        ),
-        (cfg.optim.schedule in ("exponential", "cosine"), "optim.schedule must be exponential or cosine"),
-        (cfg.optim.precision in ("bf16", "fp16", "fp32"), "optim.precision must be bf16, fp16 or fp32"),
-        (cfg.optim.steps >= 1 and cfg.optim.batch_rays >= 1, "optim.steps and optim.batch_rays must be >= 1"),
-        (cfg.loss.epsilon > 0, "loss.epsilon must be > 0"),
-        (cfg.checkpoint_every >= 1 and cfg.log_every >= 1, "checkpoint_every and log_every must be >= 1"),
-    ]
-    for ok, message in checks:
-        if not ok:
-            raise LightstageError(f"config: {message}")
 
 
 def load_config(name_or_path: str | Path, overrides: dict[str, Any] | None = None) -> TrainConfig:
@@ -252,16 +210,24 @@ def load_config(name_or_path: str | Path, overrides: dict[str, Any] | None = Non
             )
         text = path.read_text()
         source = str(path)
-    try:
-        data = yaml.safe_load(text) or {}
-    except yaml.YAMLError as e:
-        raise LightstageError(f"{source}: not valid YAML ({e})") from e
-    if overrides:
+    data = parse_yaml(text, source) or {}
+    if overrides and isinstance(data, dict):
         data = merge(data, overrides)
     try:
         return TrainConfig.from_dict(data)
-    except LightstageError as e:
-        raise LightstageError(f"{source}: {e}") from e
+    except ConfigError as e:
+        # a key the overrides set is theirs to name (the caller adds its file); the rest is the base file's
+        raise (e if _sets(overrides or {}, e.path) else e.within(source)) from None
+
+
+def _sets(overrides: dict[str, Any], path: tuple[Any, ...]) -> bool:
+    """Whether `overrides` holds the key at `path`."""
+    node: Any = overrides
+    for part in path:
+        if not isinstance(node, dict) or part not in node:
+            return False
+        node = node[part]
+    return bool(path)
 
 
 def merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:

@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from lightstage.config import load
 from lightstage.errors import LightstageError
 from lightstage.workdir import WorkDir
 
@@ -45,9 +46,8 @@ class MeshConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> MeshConfig:
-        from lightstage.training.render_views import config_from_dict
-
-        return config_from_dict(cls, d)
+        """The strict loader (`lightstage.config`): unknown keys and wrong types name the key."""
+        return load(cls, d)
 
 
 def pick_device(device: str) -> str:

@@ -14,6 +14,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from lightstage.cameras import camera_rays
+from lightstage.config import load
 from lightstage.errors import LightstageError
 from lightstage.training.envmap import EnvMap, Lights
 from lightstage.workdir import WorkDir
@@ -157,9 +158,8 @@ class RelightConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> RelightConfig:
-        from lightstage.training.render_views import config_from_dict
-
-        return config_from_dict(cls, d)
+        """The strict loader (`lightstage.config`): unknown keys and wrong types name the key."""
+        return load(cls, d)
 
 
 def run_relight(

@@ -8,13 +8,14 @@ from __future__ import annotations
 import json
 import re
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from lightstage.cameras import PinholeCamera, camera_center, look_at, rotation_z
+from lightstage.config import load
 from lightstage.errors import LightstageError
 from lightstage.workdir import WorkDir
 
@@ -323,37 +324,8 @@ class RenderConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> RenderConfig:
-        return config_from_dict(cls, d)
-
-
-_TYPE_NAMES: dict[str, tuple[type, ...]] = {
-    "int": (int,),
-    "float": (int, float),
-    "str": (str,),
-    "bool": (bool,),
-    "None": (type(None),),
-    "list[str]": (list,),
-}
-
-
-def config_from_dict(cls, d: dict[str, Any]):
-    """Build a config dataclass from a dict, rejecting unknown keys and wrong types with the key's name
-    (types are read from the field annotations, e.g. 'float | None')."""
-    known = {f.name: f for f in fields(cls)}
-    if not isinstance(d, dict):
-        raise LightstageError(f"{cls.__name__}: expected a mapping, got {type(d).__name__}")
-    for k, v in d.items():
-        if k not in known:
-            raise LightstageError(f"{cls.__name__}: unknown key {k!r} (known: {', '.join(known)})")
-        allowed: tuple[type, ...] = ()
-        for name in str(known[k].type).split("|"):
-            allowed += _TYPE_NAMES.get(name.strip(), ())
-        bad_bool = isinstance(v, bool) and bool not in allowed
-        if not isinstance(v, allowed) or bad_bool:
-            raise LightstageError(
-                f"{cls.__name__}: key {k!r} must be {known[k].type}, got {type(v).__name__} {v!r}"
-            )
-    return cls(**d)
+        """The strict loader (`lightstage.config`): unknown keys and wrong types name the key."""
+        return load(cls, d)
 
 
 def render_image(model: RelightableModel, camera: PinholeCamera, light: LightQuery) -> np.ndarray:
