@@ -1,6 +1,9 @@
 """The pipeline config: one YAML file with the capture, the work directory, how to execute (dask cluster,
-training launcher) and every stage's parameters. Each stage section is validated by that stage's own config
-class (`from_dict`), so messages name the key; `lightstage config show` prints the effective config.
+training launcher) and every stage's parameters. Every part is read by the strict loader (`lightstage.config`):
+each stage section by that stage's own config class, so messages name the file and the dotted key
+(`p.yaml: unknown key 'train.optim.lrr' (did you mean 'train.optim.lr'?)`). `validate_pipeline_config` checks
+every section and the capture's stage.yaml and capture.yaml before a run starts; `lightstage config show`
+prints the effective config.
 """
 
 from __future__ import annotations
@@ -16,6 +19,8 @@ from typing import Any
 
 import yaml
 
+from lightstage.capture.layout import open_capture
+from lightstage.config import ConfigError, UnknownKeyError, check_keys, load, parse_yaml, require
 from lightstage.errors import LightstageError
 from lightstage.pipelines.cluster import ClusterSettings
 from lightstage.pipelines.stages import STAGE_ORDER, StageImpl, available_stages, resolve_stage
@@ -31,6 +36,16 @@ class LaunchSettings:
     launcher: str = "local"
     nproc_per_node: int = 1
     torchrun: str = "torchrun"  # the torchrun executable
+
+    def __post_init__(self) -> None:
+        require(
+            self.launcher in LAUNCHERS,
+            "launcher",
+            f"expected one of {', '.join(LAUNCHERS)}, got {self.launcher!r}",
+        )
+        require(
+            self.nproc_per_node >= 1, "nproc_per_node", f"expected an integer >= 1, got {self.nproc_per_node}"
+        )
 
 
 @dataclass(frozen=True)
@@ -60,49 +75,29 @@ class PipelineConfig:
 
     @classmethod
     def from_dict(cls, data: Any, source: str = "<config>") -> PipelineConfig:
-        """Validate a mapping (top-level keys, cluster/launch types); stage sections are checked by
-        `stage_configs`. Errors name the file and the key."""
+        """Read a parsed pipeline config with the strict loader (top-level keys, cluster, launch, demo,
+        entry_points); stage sections stay mappings, checked by `stage_config`. Errors name the file and key."""
         if data is None:
             data = {}
         if not isinstance(data, dict):
-            raise LightstageError(f"{source}: expected a mapping at the top level")
-        for key in data:
-            if key not in TOP_KEYS:
-                raise LightstageError(f"{source}: {key}: unknown key (known: {', '.join(TOP_KEYS)})")
-        capture = _opt_str(data, "capture", source)
-        work = _opt_str(data, "work", source)
-        cluster = _dataclass_from(ClusterSettings, data.get("cluster"), "cluster", source)
-        if cluster.workers < 0:
-            raise LightstageError(
-                f"{source}: cluster.workers: expected an integer >= 0, got {cluster.workers}"
-            )
-        if cluster.threads_per_worker < 1:
-            raise LightstageError(
-                f"{source}: cluster.threads_per_worker: expected an integer >= 1, got {cluster.threads_per_worker}"
-            )
-        launch = _dataclass_from(LaunchSettings, data.get("launch"), "launch", source)
-        if launch.launcher not in LAUNCHERS:
-            raise LightstageError(
-                f"{source}: launch.launcher: expected one of {', '.join(LAUNCHERS)}, got {launch.launcher!r}"
-            )
-        if launch.nproc_per_node < 1:
-            raise LightstageError(f"{source}: launch.nproc_per_node: expected an integer >= 1")
-        demo = _dataclass_from(DemoSettings, data.get("demo"), "demo", source)
-        entry = data.get("entry_points") or {}
-        if not isinstance(entry, dict) or not all(isinstance(v, str) for v in entry.values()):
-            raise LightstageError(f"{source}: entry_points: expected a mapping of stage -> 'module:function'")
-        for key in entry:
+            raise ConfigError("expected a mapping at the top level", (), source)
+        check_keys(data, TOP_KEYS, (), source)
+        own = {
+            k: os.fspath(v) if isinstance(v, os.PathLike) else v
+            for k, v in data.items()
+            if k not in STAGE_ORDER
+        }
+        top = load(_TopLevel, own, source)
+        for key in top.entry_points:
             if key not in STAGE_ORDER:
-                raise LightstageError(f"{source}: entry_points.{key}: unknown stage")
+                raise UnknownKeyError(("entry_points", key), STAGE_ORDER, source)
         stages: dict[str, dict[str, Any]] = {}
         for name in STAGE_ORDER:
             section = data.get(name)
-            if section is None:
-                section = {}
-            if not isinstance(section, dict):
-                raise LightstageError(f"{source}: {name}: expected a mapping of parameters")
-            stages[name] = dict(section)
-        return cls(capture, work, cluster, launch, demo, dict(entry), stages, source)
+            if section is not None and not isinstance(section, dict):
+                raise ConfigError(f"expected a mapping of parameters, got {section!r}", name, source)
+            stages[name] = dict(section or {})
+        return cls(top.capture, top.work, top.cluster, top.launch, top.demo, top.entry_points, stages, source)
 
     def with_overrides(self, **changes: Any) -> PipelineConfig:
         """A copy with top-level fields replaced (None values are ignored)."""
@@ -117,11 +112,13 @@ class PipelineConfig:
         return resolve_stage(name, self.entry_points.get(name))
 
     def stage_config(self, name: str, impl: StageImpl | None = None) -> Any:
-        """The stage's typed config from its section; the stage's error message is prefixed with the file."""
+        """The stage's typed config from its section; errors name this file and the section's key."""
         impl = impl or self.stage_impl(name)
         try:
             return impl.make_config(self.stages.get(name, {}))
-        except LightstageError as e:
+        except ConfigError as e:
+            raise e.within(self.source, (name,)) from None
+        except LightstageError as e:  # a stage's own (non-loader) message
             msg = str(e)
             prefix = f"{name}." if not msg.startswith(name) else ""
             raise LightstageError(f"{self.source}: {prefix}{msg}") from None
@@ -174,45 +171,38 @@ def config_hash(config: Any, implementation: str = "") -> str:
     return hashlib.sha256(payload.encode()).hexdigest()[:16]
 
 
-def _opt_str(data: dict[str, Any], key: str, source: str) -> str | None:
-    value = data.get(key)
-    if value is None:
-        return None
-    if not isinstance(value, str | os.PathLike):
-        raise LightstageError(f"{source}: {key}: expected a path string, got {value!r}")
-    return os.fspath(value)
+@dataclass(frozen=True)
+class _TopLevel:
+    """The pipeline config's own keys (the stage sections are read by each stage's config class)."""
+
+    capture: str | None = None
+    work: str | None = None
+    cluster: ClusterSettings = field(default_factory=ClusterSettings)
+    launch: LaunchSettings = field(default_factory=LaunchSettings)
+    demo: DemoSettings = field(default_factory=DemoSettings)
+    entry_points: dict[str, str] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        require(
+            self.cluster.workers >= 0,
+            "cluster.workers",
+            f"expected an integer >= 0, got {self.cluster.workers}",
+        )
+        require(
+            self.cluster.threads_per_worker >= 1,
+            "cluster.threads_per_worker",
+            f"expected an integer >= 1, got {self.cluster.threads_per_worker}",
+        )
 
 
-def _dataclass_from(cls: type, section: Any, key: str, source: str) -> Any:
-    """Build a flat dataclass of str/int/float/bool fields from a mapping, naming bad keys and types."""
-    if section is None:
-        return cls()
-    if not isinstance(section, dict):
-        raise LightstageError(f"{source}: {key}: expected a mapping")
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    kwargs: dict[str, Any] = {}
-    defaults = cls()
-    for name, value in section.items():
-        if name not in fields:
-            raise LightstageError(f"{source}: {key}.{name}: unknown key (known: {', '.join(fields)})")
-        default = getattr(defaults, name)
-        if value is None:
-            if default is not None:
-                raise LightstageError(f"{source}: {key}.{name}: must not be empty")
-        elif isinstance(default, bool):
-            if not isinstance(value, bool):
-                raise LightstageError(f"{source}: {key}.{name}: expected true/false, got {value!r}")
-        elif isinstance(default, int):
-            if not isinstance(value, int) or isinstance(value, bool):
-                raise LightstageError(f"{source}: {key}.{name}: expected an integer, got {value!r}")
-        elif isinstance(default, float):
-            if not isinstance(value, int | float) or isinstance(value, bool):
-                raise LightstageError(f"{source}: {key}.{name}: expected a number, got {value!r}")
-            value = float(value)
-        elif not isinstance(value, str):
-            raise LightstageError(f"{source}: {key}.{name}: expected a string, got {value!r}")
-        kwargs[name] = value
-    return cls(**kwargs)
+def validate_pipeline_config(config: PipelineConfig, capture: str | os.PathLike[str] | None) -> None:
+    """Check the whole run before its first stage starts: every stage section with that stage's config
+    class (not only the selected stages), and the capture's stage.yaml and capture.yaml. Raises one
+    LightstageError line naming the file and the key; writes nothing."""
+    for name in STAGE_ORDER:
+        config.stage_config(name)
+    if capture is not None and "validate" not in config.entry_points:  # the capture format is validate's
+        open_capture(capture)
 
 
 def builtin_config_names() -> list[str]:
@@ -230,7 +220,7 @@ def load_pipeline_config(path: str | os.PathLike[str] | None = None) -> Pipeline
     p = Path(path)
     if not p.exists() and not p.suffix and str(path) in builtin_config_names():
         text = (resources.files("lightstage.pipelines") / "configs" / f"{path}.yaml").read_text()
-        return PipelineConfig.from_dict(_parse_yaml(text, f"<builtin {path}>"), f"<builtin {path}>")
+        return PipelineConfig.from_dict(parse_yaml(text, f"<builtin {path}>"), f"<builtin {path}>")
     try:
         text = p.read_text()
     except OSError as e:
@@ -238,20 +228,13 @@ def load_pipeline_config(path: str | os.PathLike[str] | None = None) -> Pipeline
         raise LightstageError(
             f"{p}: cannot read pipeline config ({e.strerror}; built-in configs: {names})"
         ) from None
-    config = PipelineConfig.from_dict(_parse_yaml(text, str(p)), str(p))
+    config = PipelineConfig.from_dict(parse_yaml(text, str(p)), str(p))
     base = p.resolve().parent
     resolved = {
         k: os.fspath(base / v) if v is not None and not os.path.isabs(v) else v
         for k, v in (("capture", config.capture), ("work", config.work))
     }
     return dataclasses.replace(config, **resolved)
-
-
-def _parse_yaml(text: str, source: str) -> Any:
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise LightstageError(f"{source}: invalid YAML: {e}") from None
 
 
 def dump_yaml(data: dict[str, Any]) -> str:

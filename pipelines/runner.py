@@ -21,7 +21,7 @@ from typing import Any
 from lightstage.atomic import write_json_atomic
 from lightstage.errors import LightstageError
 from lightstage.pipelines import records
-from lightstage.pipelines.config import PipelineConfig, config_as_data, config_hash
+from lightstage.pipelines.config import PipelineConfig, config_as_data, config_hash, validate_pipeline_config
 from lightstage.pipelines.stages import BATCH_STAGES, SPECS, STAGE_ORDER, StageImpl
 from lightstage.workdir import WorkDir
 
@@ -295,8 +295,9 @@ def run_pipeline(
     log: Callable[[str], None] | None = None,
 ) -> list[StageResult]:
     """Run the pipeline on `work` (writing WORK/capture.txt first when `capture` is given)."""
-    work.root.mkdir(parents=True, exist_ok=True)
     capture = capture or config.capture
+    validate_pipeline_config(config, capture if capture is not None else work.capture_path())
+    work.root.mkdir(parents=True, exist_ok=True)
     if capture is not None:
         work.link_capture(capture)
     else:
