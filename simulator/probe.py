@@ -35,7 +35,7 @@ from lightstage.simulator.scene import SimScene
 
 if TYPE_CHECKING:
     from lightstage.capture.stage import Stage
-    from lightstage.simulator.simulate import TrueGeometry
+    from lightstage.simulator.geometry import TrueGeometry
 
 
 @dataclass(frozen=True)
