@@ -159,7 +159,7 @@ def breakdown(paths: list[Path], tmp: Path) -> dict[str, dict[str, float]]:
     from lightstage.frames import COMPRESSIONS
     from lightstage.preprocess.downscale import decode_downscale, decode_raw, downscale
     from lightstage.preprocess.flare import lit_threshold, thumbnail
-    from lightstage.preprocess.run import _check_finite
+    from lightstage.preprocess.frame_task import check_finite
     from lightstage.preprocess.stats import StatsAccumulator
     from lightstage.records.processed import HalfRounder, write_processed
     from lightstage.tonemap import luminance
@@ -185,7 +185,7 @@ def breakdown(paths: list[Path], tmp: Path) -> dict[str, dict[str, float]]:
         del px
 
         def check(small=small, p=p):  # noqa: ANN001, ANN202
-            _check_finite(small.rgb, str(p))
+            check_finite(small.rgb, str(p))
             return rounder(small.rgb)  # half planes; small.rgb is rounded in place
 
         planes = timed("half+check", check)

@@ -1,0 +1,142 @@
+"""The jobs and records that pass between the preprocess driver (run.py) and its tasks: small, picklable
+dataclasses, and the helpers every task shares (partial paths, raw-file signatures, stale temp cleanup)."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from lightstage.errors import LightstageError
+from lightstage.ids import ViewId
+from lightstage.preprocess.config import PreprocessConfig
+from lightstage.workdir import WorkDir
+
+VIEW_RECORD = "view.json"
+PARTIALS = "partials"
+PREVIEWS = "previews.json"
+
+
+# ---- jobs and records (small, picklable) -----------------------------------------------------------------
+@dataclass(frozen=True)
+class ChunkJob:
+    """One chunk: a few lights of one view, with everything a worker needs."""
+
+    work_root: str
+    group: str
+    camera: str
+    index: int
+    lights: tuple[int, ...]
+    raw_paths: tuple[str, ...]
+    raw_size: tuple[int, int]  # (width, height)
+    cutoff: float
+    exposure_scale: float
+    config: PreprocessConfig
+    # per light of the chunk, its relative RGB intensity (stage.yaml); processed frames are divided by it
+    intensities: tuple[tuple[float, float, float], ...] = ()
+
+
+@dataclass(frozen=True)
+class ChunkRecord:
+    """What a chunk task reports: counts, per-frame problems, timings."""
+
+    group: str
+    camera: str
+    index: int
+    processed: int = 0
+    reused: int = 0
+    problems: tuple[tuple[int, str], ...] = ()
+    seconds: float = 0.0
+    cpu_seconds: float = 0.0  # CPU time of the task's process (all its threads) while it ran
+    resumed: bool = False  # the partial statistics already existed
+
+
+@dataclass(frozen=True)
+class ViewJob:
+    """One view's merge/segment/score step."""
+
+    work_root: str
+    group: str
+    camera: str
+    lights: tuple[int, ...]
+    chunks: int
+    size: tuple[int, int]  # processed (width, height)
+    cutoff: float
+    config: PreprocessConfig
+    gt_mask: str | None = None
+    raw_paths: tuple[str, ...] = ()
+    raw_size: tuple[int, int] = (0, 0)  # (width, height)
+    exposure_scale: float = 1.0
+
+
+@dataclass
+class ViewRecord:
+    """A finished view (also stored as view.json): frames used, problems, flare scores, rejects, IoU."""
+
+    group: str
+    camera: str
+    key: str
+    lights: list[int]  # lights with a valid processed frame (in the statistics)
+    problems: dict[str, str]  # light -> reason (frames that could not be processed)
+    problem_files: dict[str, list[float]]  # light -> [size, mtime] of the raw file when it failed
+    flare_scores: dict[str, float]  # light -> score
+    rejected: list[int]
+    foreground_fraction: float
+    exposure_level: float  # high percentile of the mean image's foreground luminance
+    sfm_lights: list[int] = field(default_factory=list)  # frames in the SfM image
+    sfm_level: float = 0.0  # the same percentile of the SfM image's foreground luminance
+    iou: float | None = None
+    seconds: float = 0.0
+    chunks: list[dict[str, Any]] = field(default_factory=list)
+    # why the mask looks wrong (segment.mask_flags; group_flags added once every view is done); empty: fine
+    flags: list[str] = field(default_factory=list)
+    segmentation: dict[str, Any] = field(default_factory=dict)  # measured levels (segment.segment_view)
+
+    @property
+    def view(self) -> ViewId:
+        return ViewId(self.group, self.camera)
+
+
+# ---- helpers ------------------------------------------------------------------------------------------------
+def partial_path(work: WorkDir, view: ViewId, index: int, key: str) -> Path:
+    return work.view_dir(view) / PARTIALS / f"chunk{index:04d}-{key}.npz"
+
+
+def split_lights(lights: list[int], size: int) -> list[tuple[int, ...]]:
+    return [tuple(lights[i : i + size]) for i in range(0, len(lights), size)]
+
+
+def in_dask_worker() -> bool:
+    try:
+        from distributed import get_worker
+
+        get_worker()
+        return True
+    except (ImportError, ValueError):
+        return False
+
+
+def file_signature(path: str) -> list[float]:
+    try:
+        st = os.stat(path)
+        return [float(st.st_size), float(st.st_mtime)]
+    except OSError:
+        return [-1.0, -1.0]
+
+
+def remove_stale_temps(directory: Path, stems: list[str]) -> None:
+    """Delete temp files a killed writer left for these outputs (lightstage.atomic names them
+    `.<stem>.<random>.tmp<suffix>`); only the task that owns the outputs calls this."""
+    if not directory.is_dir():
+        return
+    for stem in stems:
+        for p in directory.glob(f".{stem}.*.tmp*"):
+            p.unlink(missing_ok=True)
+
+
+def reason_of(e: BaseException) -> str:
+    if isinstance(e, LightstageError):
+        return str(e)
+    text = str(e).strip().splitlines()
+    return f"{type(e).__name__}: {text[0][:200]}" if text else type(e).__name__

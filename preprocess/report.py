@@ -1,0 +1,200 @@
+"""After the views: group flags, the tonemapped previews with one exposure per capture, and the stage report."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lightstage.atomic import write_json_atomic
+from lightstage.capture.layout import Capture
+from lightstage.ids import FrameId, ViewId
+from lightstage.preprocess.config import PreprocessConfig
+from lightstage.preprocess.jobs import (
+    PREVIEWS,
+    VIEW_RECORD,
+    ChunkRecord,
+    ViewJob,
+    ViewRecord,
+    remove_stale_temps,
+)
+from lightstage.workdir import DOWNSCALE, WorkDir
+
+
+def add_group_flags(work: WorkDir, records: dict[ViewId, ViewRecord], config: PreprocessConfig) -> None:
+    """Flag views whose foreground fraction disagrees strongly with the other views of their group (rewrites
+    their view.json; the flag is dropped again when a rerun finds them consistent)."""
+    from lightstage.preprocess.segment import group_flags
+
+    by_group: dict[str, dict[str, float]] = {}
+    for v, rec in records.items():
+        by_group.setdefault(v.group, {})[v.camera] = rec.foreground_fraction
+    for group, fractions in by_group.items():
+        odd = group_flags(fractions, config.flag_group_ratio)
+        for camera in fractions:
+            rec = records[ViewId(group, camera)]
+            own = [f for f in rec.flags if not f.startswith("foreground fraction ")]
+            flags = own + ([odd[camera]] if camera in odd else [])
+            if flags != rec.flags:
+                rec.flags = flags
+                write_json_atomic(work.view_dir(rec.view) / VIEW_RECORD, asdict(rec))
+
+
+# ---- previews and report ----------------------------------------------------------------------------------------
+def write_previews(
+    work: WorkDir, jobs: list[ViewJob], records: dict[ViewId, ViewRecord], config: PreprocessConfig
+) -> float:
+    """Write wellit.png (8-bit tonemapped mean image), overlay.png, and the SfM image (sfm.png) with its mask
+    (sfm_mask.png) for every finished view, with one exposure for the whole capture per kind of image (and
+    WORK/preprocess/sfm_images.json); views whose previews already use those exposures are skipped."""
+    from lightstage.frames import read_exr, write_image
+    from lightstage.preprocess.segment import overlay, read_mask, zone_map
+    from lightstage.preprocess.sfm_image import sfm_image_factor, spread_lights, upsample_mask
+    from lightstage.tonemap import tonemap_u8
+
+    def auto(levels: list[float]) -> float:
+        levels = [x for x in levels if x > 0]
+        return float(np.float32(config.exposure or (1.0 / float(np.median(levels)) if levels else 1.0)))
+
+    exposure = auto([r.exposure_level for r in records.values()])
+    sfm_exposure = auto([r.sfm_level for r in records.values()])
+    book_path = work.preprocess_dir / PREVIEWS
+    remove_stale_temps(work.preprocess_dir, [Path(PREVIEWS).stem, work.sfm_info.stem])
+    remove_stale_temps(work.report("preprocess").parent, ["preprocess"])
+    try:
+        book = json.loads(book_path.read_text()) if book_path.is_file() else {}
+    except (OSError, ValueError):
+        book = {}
+    changed = False
+    for job in jobs:
+        view = ViewId(job.group, job.camera)
+        rec = records[view]
+        stamp = {
+            "exposure": exposure,
+            "sfm_exposure": sfm_exposure,
+            "view_key": rec.key,
+            "lights": len(rec.lights),
+            "flags": rec.flags,
+        }
+        outputs = (
+            work.wellit(view),
+            work.view_dir(view) / "overlay.png",
+            work.sfm_image(view),
+            work.sfm_mask(view),
+        )
+        remove_stale_temps(work.view_dir(view), [p.stem for p in outputs])
+        if book.get(str(view)) == stamp and all(p.is_file() for p in outputs):
+            continue
+        img = tonemap_u8(read_exr(work.mean_image(view)).astype(np.float32), exposure)
+        mask = read_mask(work.mask(view))
+        write_image(outputs[0], img)
+        write_image(outputs[1], overlay(img, mask, zone_map(mask, config.band_width), rec.flags))
+        sfm = read_exr(work.sfm_hdr(view)).astype(np.float32)
+        write_image(outputs[2], tonemap_u8(sfm, sfm_exposure))
+        write_image(outputs[3], upsample_mask(mask, (sfm.shape[1], sfm.shape[0])))
+        book[str(view)] = stamp
+        changed = True
+    if changed:
+        write_json_atomic(book_path, book)
+    if jobs:
+        W, H = jobs[0].raw_size
+        f = sfm_image_factor(W, H, config.sfm_max_side)
+        # the lights each view's image is built from, before its own bad and rejected frames are left out
+        lights = len(spread_lights(list(jobs[0].lights), config.sfm_lights))
+        info = {"factor": f, "size": [W // f, H // f], "lights": lights, "exposure": sfm_exposure}
+        write_json_atomic(work.sfm_info, info)
+    return exposure
+
+
+def build_report(
+    work: WorkDir,
+    capture: Capture,
+    config: PreprocessConfig,
+    jobs: list[ViewJob],
+    records: dict[ViewId, ViewRecord],
+    chunk_results: list[ChunkRecord],
+    errors: list[str],
+    finished_before: int,
+    exposure: float,
+) -> dict[str, Any]:
+    """The stage report: counts, problems, flare scores, rejects, flagged views, segmentation IoU."""
+    n_lights = len(capture.stage.lights)
+    problems, rejected, flagged, scores, ious = [], [], [], {}, {}
+    masks_flagged: list[dict[str, Any]] = []
+    for job in jobs:
+        view = ViewId(job.group, job.camera)
+        rec = records.get(view)
+        if rec is None:
+            continue
+        for lt, reason in sorted(rec.problems.items(), key=lambda kv: int(kv[0])):
+            problems.append({"frame": str(FrameId(view.group, view.camera, int(lt))), "reason": reason})
+        rejected.extend(str(FrameId(view.group, view.camera, lt)) for lt in rec.rejected)
+        scores[str(view)] = rec.flare_scores
+        lost = len(rec.problems) + len(rec.rejected)
+        if n_lights and lost / n_lights > config.max_lost_fraction:
+            flagged.append(
+                {
+                    "view": str(view),
+                    "lost": lost,
+                    "bad": len(rec.problems),
+                    "rejected": len(rec.rejected),
+                    "fraction": round(lost / n_lights, 4),
+                }
+            )
+        if rec.flags:
+            masks_flagged.append(
+                {
+                    "view": str(view),
+                    "foreground_fraction": round(rec.foreground_fraction, 4),
+                    "reasons": rec.flags,
+                }
+            )
+        if rec.iou is not None:
+            ious[str(view)] = round(rec.iou, 5)
+    counts = {
+        "views": len(jobs),
+        "views_finished": len(records),
+        "views_finished_before": finished_before,
+        "views_failed": len(jobs) - len(records),
+        "frames": len(jobs) * n_lights,
+        "processed": sum(c.processed for c in chunk_results),
+        "reused": sum(c.reused for c in chunk_results),
+        "chunks_resumed": sum(1 for c in chunk_results if c.resumed),
+        "frames_ok": sum(len(r.lights) for r in records.values()),
+        "bad": len(problems),
+        "rejected": len(rejected),
+        "flagged_views": len(flagged),
+        "flagged_masks": len(masks_flagged),
+    }
+    report: dict[str, Any] = {
+        "stage": "preprocess",
+        "capture": str(capture.root),
+        "config": config.to_dict(),
+        "config_key": config.view_key(),
+        "processed_size": list(jobs[0].size) if jobs else None,
+        "downscale": DOWNSCALE,
+        "exposure": exposure,
+        "counts": counts,
+        "problems": problems,
+        "rejected_frames": rejected,
+        "flagged_views": flagged,
+        "flagged_masks": masks_flagged,
+        "flare": {"threshold": config.flare_threshold, "scores": scores},
+        "warnings": [f"view {f['view']} lost {f['lost']} of {n_lights} frames" for f in flagged]
+        + [f"view {f['view']}: suspicious mask: {'; '.join(f['reasons'])}" for f in masks_flagged],
+        "errors": errors,
+    }
+    if ious:
+        vals = np.array(list(ious.values()))
+        worst = min(ious, key=ious.get)
+        report["segmentation"] = {
+            "ground_truth": True,
+            "iou_mean": round(float(vals.mean()), 5),
+            "iou_worst": round(float(vals.min()), 5),
+            "worst_view": worst,
+            "iou": ious,
+        }
+    return report
