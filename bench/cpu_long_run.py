@@ -21,7 +21,7 @@ from pathlib import Path
 
 from lightstage.training.config import load_config
 from lightstage.training.evaluate import run_eval
-from lightstage.training.run import run_train
+from lightstage.training.train_stage import run_train
 from lightstage.workdir import WorkDir
 
 SHARED = ("capture.txt", "split.json", "bounds.json", "calibration", "preprocess", "shards")

@@ -12,7 +12,7 @@ from lightstage.dataset.shards import ShardConfig, run_shard
 from lightstage.dataset.split import SplitConfig, run_split
 from lightstage.training.config import load_config
 from lightstage.training.evaluate import run_eval
-from lightstage.training.run import run_train
+from lightstage.training.train_stage import run_train
 from lightstage.workdir import WorkDir
 
 

@@ -25,9 +25,9 @@ from lightstage.tonemap import paper_tonemap, srgb_encode, tonemap
 from lightstage.training import evaluate
 from lightstage.training.config import EvalConfig
 from lightstage.training.evaluate import run_eval
+from lightstage.training.inference import load_trained
 from lightstage.training.lpips import LPIPSVGG, lpips_or_none, vgg16_features
 from lightstage.training.metrics import ceiling_scores, image_metrics, psnr, scores, ssim
-from lightstage.training.trained import load_trained
 from lightstage.training.trainer import fit
 from lightstage.workdir import WorkDir
 

@@ -19,6 +19,7 @@ from lightstage.training.envmap import (
     pixel_directions,
     row_solid_angles,
 )
+from lightstage.training.novel_views import RenderConfig, run_render
 from lightstage.training.relight import (
     RelightableModel,
     RelightConfig,
@@ -27,14 +28,12 @@ from lightstage.training.relight import (
     relight_image,
     run_relight,
 )
-from lightstage.training.render_views import (
-    RenderConfig,
+from lightstage.training.view_specs import (
     load_scene_info,
     orbit_camera,
     parse_camera,
     parse_light,
     rotate_camera_about_z,
-    run_render,
 )
 from lightstage.workdir import WorkDir
 
@@ -311,7 +310,7 @@ def test_run_render_single_and_orbit(tmp_path):
 @pytest.fixture(scope="module")
 def trained_work(tmp_path_factory):
     """A work dir with a (barely) trained tiny checkpoint of the model package's synthetic sphere."""
-    pytest.importorskip("lightstage.training.trained")  # the model package's loader (load_trained)
+    pytest.importorskip("lightstage.training.inference")  # the model package's loader (load_trained)
     pytest.importorskip("lightstage.training.trainer")
     from support.synthetic import SyntheticSphere
 
@@ -331,8 +330,8 @@ def trained_work(tmp_path_factory):
 def test_cli_relight_render_mesh_on_a_trained_checkpoint(trained_work, tmp_path, capsys):
     from lightstage.frames import read_exr, write_exr
     from lightstage.pipelines.cli import main
+    from lightstage.training.inference import load_trained
     from lightstage.training.mesh import density_grid, read_ply
-    from lightstage.training.relight import load_model
 
     work = str(trained_work.root)
     write_exr(tmp_path / "env.exr", _sky(32, 64).astype(np.float32), half=False)
@@ -355,7 +354,7 @@ def test_cli_relight_render_mesh_on_a_trained_checkpoint(trained_work, tmp_path,
         and (tmp_path / "orbit" / "orbit_strip.png").is_file()
     )
 
-    model = load_model(trained_work)
+    model = load_trained(trained_work)
     grid = density_grid(model, 12, progress=False)
     capsys.readouterr()
     assert (

@@ -14,7 +14,7 @@ from support.training import ddp_worker, micro_config
 from lightstage.training.checkpoint import load_checkpoint
 from lightstage.training.config import load_config
 from lightstage.training.evaluate import evaluate_images
-from lightstage.training.trained import load_trained
+from lightstage.training.inference import load_trained
 from lightstage.training.trainer import fit, lr_factor
 from lightstage.workdir import WorkDir
 

@@ -17,6 +17,9 @@ from lightstage.errors import LightstageError
 FORMAT_VERSION = 1
 
 
+CHECKPOINT_NAME = "checkpoint.pt"  # WORK/train/checkpoint.pt: the latest checkpoint
+
+
 def rng_state() -> dict[str, Any]:
     """This process's RNG states as tensors and plain values (safe for weights_only loading)."""
     kind, keys, pos, has_gauss, cached = np.random.get_state()  # noqa: NPY002 (global state is what we save)

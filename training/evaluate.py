@@ -20,38 +20,18 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
 from lightstage.atomic import write_json_atomic
-from lightstage.cameras import PinholeCamera, camera_rays
 from lightstage.errors import LightstageError
 from lightstage.records.shards import TestImage
 from lightstage.tonemap import tonemap, tonemap_u8
 from lightstage.training.ceiling import CleanRenders
 from lightstage.training.config import EvalConfig
+from lightstage.training.inference import render_image
 from lightstage.training.metrics import CONVENTIONS, ceiling_scores, scores
 from lightstage.training.model import RelightModel
 from lightstage.workdir import WorkDir
-
-
-@torch.no_grad()
-def render_image(
-    model: RelightModel, camera: PinholeCamera, light_direction: np.ndarray, chunk: int = 8192
-) -> np.ndarray:
-    """(H, W, 3) float32 HDR image rendered in chunks of rays (deterministic samples)."""
-    device = model.centre.device
-    o, d = camera_rays(camera)
-    o_t = torch.from_numpy(o.astype(np.float32)).to(device)
-    d_t = torch.from_numpy(d.astype(np.float32)).to(device)
-    light = torch.as_tensor(np.asarray(light_direction, np.float32), device=device).reshape(1, 3)
-    out = []
-    for i in range(0, len(o_t), chunk):
-        n = len(o_t[i : i + chunk])
-        out.append(
-            model(o_t[i : i + chunk], d_t[i : i + chunk], light.expand(n, 3), randomized=False)["rgb"].float()
-        )
-    return torch.cat(out).cpu().numpy().reshape(camera.height, camera.width, 3)
 
 
 def side_by_side(
@@ -85,7 +65,7 @@ def evaluate_images(
 ) -> dict[str, Any]:
     """Per-image and mean metrics (module docstring) of the model, the constant baseline and, where `clean`
     has the frame's noise-free render, the ceiling; prediction | masked target | error PNGs into out_dir."""
-    from lightstage.training.trainer import _write_png
+    from lightstage.frames import write_image
 
     rows = []
     for img in tqdm(images, total=total, desc="eval", disable=not progress, unit="img"):
@@ -102,7 +82,7 @@ def evaluate_images(
         row["masked"] = img.mask is not None
         row["seconds"] = time.perf_counter() - t0
         if out_dir is not None:
-            _write_png(Path(out_dir) / f"{img.name}.png", side_by_side(pred, img.masked_target, exposure))
+            write_image(Path(out_dir) / f"{img.name}.png", side_by_side(pred, img.masked_target, exposure))
         rows.append(row)
     keys = [k for k in (rows[0] if rows else {}) if k not in ("name", "masked", "seconds")]
     return {
@@ -133,9 +113,9 @@ def run_eval(
 ) -> dict[str, Any]:
     """Score the trained model on the test split in WORK/shards/test; writes reports/eval.json and eval PNGs.
     `config` is an EvalConfig (None: the one stored with the checkpoint). `client` is unused (rendering is GPU work)."""
-    from lightstage.training.data_real import count_test_images, iter_test_images
+    from lightstage.training.inference import load_trained
+    from lightstage.training.inputs import count_test_images, iter_test_images
     from lightstage.training.lpips import lpips_or_none
-    from lightstage.training.trained import load_trained
 
     t0 = time.perf_counter()
     trained = load_trained(work, checkpoint, device)

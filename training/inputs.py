@@ -1,15 +1,24 @@
-"""Adapters from the dataset stage's outputs (WORK/shards) to what the trainer and evaluation consume:
+"""What the trainer and evaluation consume, and the adapters from the dataset stage's outputs (WORK/shards) to what the trainer and evaluation consume:
 `ShardSource` (a BatchSource over lightstage.dataset.loader) and the test images in WORK/shards/test."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
+from typing import Protocol
 
 import torch
 
 from lightstage.errors import LightstageError
 from lightstage.records.shards import TestImage, read_test_image, read_test_index
 from lightstage.workdir import WorkDir
+
+
+class BatchSource(Protocol):
+    """A stream of batch dicts with BATCH_KEYS that can restart at any position (batches already consumed)."""
+
+    def batches(
+        self, start: int = 0, rank: int = 0, world_size: int = 1
+    ) -> Iterator[dict[str, torch.Tensor]]: ...
 
 
 class ShardSource:

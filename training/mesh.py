@@ -30,7 +30,7 @@ from lightstage.errors import LightstageError
 from lightstage.workdir import WorkDir
 
 if TYPE_CHECKING:
-    from lightstage.training.relight import RelightableModel
+    from lightstage.training.inference import RelightableModel
 
 
 @dataclass
@@ -242,9 +242,9 @@ def run_mesh(
     t0 = time.perf_counter()
     device = pick_device(config.device)
     if model is None:
-        from lightstage.training.relight import load_model
+        from lightstage.training.inference import load_trained
 
-        model = load_model(work, config.checkpoint, device)
+        model = load_trained(work, config.checkpoint, device)
     centre, scale = bounds_of(model)
     grid = density_grid(model, config.resolution, config.chunk, device, progress)
     t1 = time.perf_counter()

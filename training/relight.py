@@ -9,7 +9,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import Any
 
 import numpy as np
 
@@ -17,43 +17,9 @@ from lightstage.cameras import camera_rays
 from lightstage.config import load
 from lightstage.errors import LightstageError
 from lightstage.training.envmap import EnvMap, Lights
+from lightstage.training.inference import RelightableModel, load_trained
+from lightstage.training.view_specs import write_hdr
 from lightstage.workdir import WorkDir
-
-
-@runtime_checkable
-class RelightableModel(Protocol):
-    """What relighting, rendering and meshing need of a trained model (lightstage.training.model)."""
-
-    centre: Any  # scene-bounds centre (3,) or scalar: x_norm = (x - centre) / scale in [-1, 1]^3
-    scale: Any  # scene-bounds half-extent, scalar or (3,)
-
-    def render_rays(self, origins, directions, light_directions, chunk: int = ...) -> Any:
-        """(N, 3) world rays and per-ray unit light directions -> (N, 3) linear HDR."""
-        ...
-
-    def density(self, points_world) -> Any:
-        """(N, 3) world points -> (N,) volume density."""
-        ...
-
-    def image_from_camera(self, camera, light_direction) -> np.ndarray:
-        """(H, W, 3) linear HDR image of a PinholeCamera under a white OLAT light from `light_direction`."""
-        ...
-
-
-def load_model(work: WorkDir, checkpoint: str | None = None, device: str = "cpu") -> RelightableModel:
-    """The trained model of WORK (its latest checkpoint, or `checkpoint`) on `device`, through the model
-    package's `load_trained` (in `lightstage.training.trained`; `lightstage.training.model` as the brief had it)."""
-    import importlib
-
-    for name in ("lightstage.training.trained", "lightstage.training.model"):
-        try:
-            load_trained = importlib.import_module(name).load_trained
-        except (ImportError, AttributeError):
-            continue
-        return load_trained(work, Path(checkpoint) if checkpoint else None, device)
-    raise LightstageError(
-        "this installation has no trained-model loader (lightstage.training.trained.load_trained)"
-    )
 
 
 def olat_images(model: RelightableModel, camera, directions: np.ndarray, batch_rays: int = 65536):
@@ -175,7 +141,7 @@ def run_relight(
     from lightstage.frames import write_image
     from lightstage.tonemap import auto_exposure, tonemap_u8
     from lightstage.training.envmap import envmap_lights, load_envmap, parse_resolution, preview_with_lights
-    from lightstage.training.render_views import downscale_camera, load_scene_info, parse_camera
+    from lightstage.training.view_specs import downscale_camera, load_scene_info, parse_camera
 
     t0 = time.perf_counter()
     if not config.envmap:
@@ -184,7 +150,7 @@ def run_relight(
     env = load_envmap(config.envmap, parse_resolution(config.resolution), config.rotate_deg)
     scene = load_scene_info(work, config.light_distance, config.light_intensity)
     if model is None:
-        model = load_model(work, config.checkpoint, config.device)
+        model = load_trained(work, config.checkpoint, config.device)
     specs = list(config.cameras)
     if not specs:
         specs = [_default_camera(scene)]
@@ -251,17 +217,9 @@ def run_relight(
     return summary
 
 
-def write_hdr(path: Path, img: np.ndarray, attributes: dict[str, str] | None = None) -> None:
-    """Linear HDR EXR: float16 (the project's disk format) unless a value exceeds half's range, then float32."""
-    from lightstage.frames import write_exr
-
-    half = bool(np.all(np.abs(img) < 65000.0))
-    write_exr(path, img, half=half, attributes=attributes)
-
-
 def _unique_names(cameras: list) -> list:
     """Suffix repeated camera names (_2, _3, ...) so no output overwrites another."""
-    from lightstage.training.render_views import NamedCamera
+    from lightstage.training.view_specs import NamedCamera
 
     seen: dict[str, int] = {}
     out = []

@@ -49,7 +49,7 @@ def run_train(
     `stop_at` ends this run at that step (checkpointed; a later run resumes to `optim.steps`), so a long training
     can be split over time-limited jobs. `client` is accepted for the stage API and unused (training is one GPU
     job, multi-GPU through torchrun)."""
-    from lightstage.training.data_real import ShardSource, iter_test_images
+    from lightstage.training.inputs import ShardSource, iter_test_images
     from lightstage.training.trainer import distributed, fit
 
     dev = pick_device(device)

@@ -22,14 +22,19 @@ from tqdm import tqdm
 from lightstage.atomic import write_json_atomic
 from lightstage.records.shards import TestImage
 from lightstage.tonemap import auto_exposure
-from lightstage.training.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from lightstage.training.checkpoint import (
+    CHECKPOINT_NAME,
+    load_checkpoint,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
 from lightstage.training.config import OptimConfig, TrainConfig
-from lightstage.training.data import BatchSource
+from lightstage.training.inputs import BatchSource
 from lightstage.training.losses import total_loss
 from lightstage.training.model import RelightModel
 from lightstage.workdir import ZONE_FOREGROUND
 
-CHECKPOINT_NAME = "checkpoint.pt"
 LOG_FIELDS = ("step", "loss", "rgb_fine", "rgb_coarse", "mask", "lr", "rays_per_s", "occupied")
 
 
@@ -296,7 +301,9 @@ def preview(
 ) -> list[float]:
     """Render a few test images, write prediction | masked target PNGs and return their PSNRs against the
     masked target (evaluation's headline metric; the full-frame PSNR is logged beside it)."""
-    from lightstage.training.evaluate import render_image, side_by_side
+    from lightstage.frames import write_image
+    from lightstage.training.evaluate import side_by_side
+    from lightstage.training.inference import render_image
     from lightstage.training.metrics import image_metrics
 
     was_training = model.training
@@ -311,7 +318,7 @@ def preview(
         )
         png = side_by_side(pred, img.masked_target, stats.exposure)
         folder.mkdir(parents=True, exist_ok=True)
-        _write_png(folder / f"step{step:07d}_{k}.png", png)
+        write_image(folder / f"step{step:07d}_{k}.png", png)
         if log is not None and log.tb is not None:
             log.tb.add_image(f"preview/{k}", png, step, dataformats="HWC")
     if log is not None:
@@ -324,16 +331,6 @@ def preview(
         )
     model.train(was_training)
     return psnrs
-
-
-def _write_png(path: Path, rgb_u8: np.ndarray) -> None:
-    import cv2
-
-    from lightstage.atomic import atomic_path
-
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb_u8, cv2.COLOR_RGB2BGR)):
-            raise OSError(f"{path}: could not write PNG")
 
 
 class _Log:
