@@ -151,3 +151,37 @@ def _flags_to_half(flags: np.ndarray) -> np.ndarray:
     out = np.empty(flags.shape, np.int16)
     np.multiply(np.ascontiguousarray(flags, bool).view(np.uint8), np.int16(0x3C00), out=out, casting="unsafe")
     return out.view(np.float16)
+
+
+# ---- per-view label images (WORK/preprocess/views/<g>/<c>/mask.png, zones.png) --------------------------
+def read_label_png(path: str | os.PathLike[str]) -> np.ndarray:
+    """A single-channel 8-bit PNG (mask or zone map) as uint8 (H, W), exact values (OpenCV, no rescaling)."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise LightstageError(f"{path}: missing (run `lightstage preprocess`)")
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise LightstageError(f"{path}: unreadable PNG")
+    if img.ndim == 3:
+        img = img[..., 0]
+    if img.dtype != np.uint8:
+        img = np.clip(img, 0, 255).astype(np.uint8)
+    return img
+
+
+def read_mask(path: str | os.PathLike[str]) -> np.ndarray:
+    """A foreground mask PNG as bool (H, W): 0/255 and 0/1 PNGs are both accepted."""
+    m = read_label_png(path)
+    return m > (127 if m.max() > 1 else 0)
+
+
+def read_zones(path: str | os.PathLike[str]) -> np.ndarray:
+    """A zone map PNG as labels ZONE_BACKGROUND / ZONE_BAND / ZONE_FOREGROUND (raw labels or 0/128/255)."""
+    from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND
+
+    z = read_label_png(path)
+    if z.max() <= 2:
+        return z
+    return np.where(z < 64, ZONE_BACKGROUND, np.where(z < 192, ZONE_BAND, ZONE_FOREGROUND)).astype(np.uint8)
