@@ -17,7 +17,7 @@ import hashlib
 import json
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +26,7 @@ import numpy as np
 from lightstage.atomic import write_json_atomic
 from lightstage.cameras import camera_center, scale_intrinsics
 from lightstage.capture.layout import Capture, open_capture
+from lightstage.config import load, require, require_choice
 from lightstage.errors import LightstageError
 from lightstage.ids import ViewId
 from lightstage.records.calibration import Calibration, ViewCalibration
@@ -81,57 +82,33 @@ class CalibrateConfig:
     keep_sfm_workspace: bool = False  # keep WORK/calibration/sfm (images, database) for debugging
     show_colmap_log: bool = False  # echo COLMAP's log (always in WORK/calibration/colmap.log) to stderr
 
+    def __post_init__(self) -> None:
+        require_choice(self.method, "method", METHODS)
+        for key in (
+            "gauge_position_sigma_mm",
+            "light_prior_sigma_mm",
+            "bulb_pixel_sigma",
+            "light_gauge_max_sigma",
+            "probe_pixel_sigma",
+        ):
+            require(getattr(self, key) > 0, key, f"must be > 0, got {getattr(self, key)!r}")
+        for key in (
+            "probe_rotation_sigma_deg",
+            "probe_distance_sigma_mm",
+            "probe_radius_sigma_mm",
+            "gauge_rotation_sigma_deg",
+        ):
+            require(getattr(self, key) >= 0, key, f"must be >= 0, got {getattr(self, key)!r}")
+        require(
+            0.0 < self.min_registered_fraction <= 1.0,
+            "min_registered_fraction",
+            f"must be in (0, 1], got {self.min_registered_fraction!r}",
+        )
+
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> CalibrateConfig:
-        """Build from a mapping; unknown keys or wrong types raise a LightstageError naming the key."""
-        d = dict(d or {})
-        known = {f.name: f for f in fields(cls)}
-        kwargs: dict[str, Any] = {}
-        for key, value in d.items():
-            if key not in known:
-                raise LightstageError(f"calibration config: unknown key {key!r} (known: {', '.join(known)})")
-            default = getattr(cls, key)
-            if key == "intrinsics":
-                if value is not None and not isinstance(value, str):
-                    raise LightstageError(f"calibration config: {key}: expected a path string, got {value!r}")
-            elif isinstance(default, bool):
-                if not isinstance(value, bool):
-                    raise LightstageError(f"calibration config: {key}: expected true/false, got {value!r}")
-            elif isinstance(default, int):
-                if not isinstance(value, int) or isinstance(value, bool):
-                    raise LightstageError(f"calibration config: {key}: expected an integer, got {value!r}")
-            elif isinstance(default, float):
-                if not isinstance(value, int | float) or isinstance(value, bool):
-                    raise LightstageError(f"calibration config: {key}: expected a number, got {value!r}")
-                value = float(value)
-            elif isinstance(default, str) and not isinstance(value, str):
-                raise LightstageError(f"calibration config: {key}: expected a string, got {value!r}")
-            kwargs[key] = value
-        cfg = cls(**kwargs)
-        if cfg.method not in METHODS:
-            raise LightstageError(
-                f"calibration config: method: expected one of {METHODS}, got {cfg.method!r}"
-            )
-        if (
-            cfg.gauge_position_sigma_mm <= 0
-            or cfg.light_prior_sigma_mm <= 0
-            or cfg.bulb_pixel_sigma <= 0
-            or cfg.light_gauge_max_sigma <= 0
-            or cfg.probe_pixel_sigma <= 0
-            or cfg.probe_rotation_sigma_deg < 0
-            or cfg.probe_distance_sigma_mm < 0
-            or cfg.probe_radius_sigma_mm < 0
-            or cfg.gauge_rotation_sigma_deg < 0
-        ):
-            raise LightstageError(
-                "calibration config: gauge_position_sigma_mm, light_prior_sigma_mm, bulb_pixel_sigma, "
-                "light_gauge_max_sigma and probe_pixel_sigma must be > 0; probe_rotation_sigma_deg, "
-                "probe_distance_sigma_mm, probe_radius_sigma_mm and "
-                "gauge_rotation_sigma_deg >= 0"
-            )
-        if not 0.0 < cfg.min_registered_fraction <= 1.0:
-            raise LightstageError("calibration config: min_registered_fraction: must be in (0, 1]")
-        return cfg
+        """The strict loader (`lightstage.config`): unknown keys, wrong types and bad values name the key."""
+        return load(cls, d)
 
     def digest(self) -> str:
         """Hash of the settings that change the outputs (display-only ones left out)."""

@@ -16,6 +16,7 @@ import yaml
 
 from lightstage.atomic import write_text_atomic
 from lightstage.capture.stage import Stage, load_stage
+from lightstage.config import ConfigError, load, require
 from lightstage.errors import LightstageError
 from lightstage.ids import FrameId, ViewId
 
@@ -32,6 +33,20 @@ class CaptureInfo:
     exposure_scale: float = 1.0  # multiply raw pixels by this to get the stage's radiometric units
     object_name: str = ""
     notes: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        try:
+            self.path_template.format(group="000", camera="cam00", light=0)
+        except (KeyError, IndexError, ValueError) as e:
+            raise ConfigError(
+                f"{self.path_template!r} must use only {{group}}, {{camera}} and {{light}} ({e})",
+                "path_template",
+            ) from None
+        require(
+            self.exposure_scale > 0,
+            "exposure_scale",
+            f"expected a positive number, got {self.exposure_scale!r}",
+        )
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -79,22 +94,7 @@ def load_capture_info(path: str | os.PathLike[str]) -> CaptureInfo:
         raise LightstageError(f"{path}: invalid YAML: {e}") from None
     if not isinstance(data, dict):
         raise LightstageError(f"{path}: expected a mapping at the top level")
-    template = data.get("path_template", DEFAULT_PATH_TEMPLATE)
-    if not isinstance(template, str):
-        raise LightstageError(f"{path}: path_template: expected a string")
-    try:
-        template.format(group="000", camera="cam00", light=0)
-    except (KeyError, IndexError, ValueError) as e:
-        raise LightstageError(
-            f"{path}: path_template: {template!r} must use only {{group}}, {{camera}} and {{light}} ({e})"
-        ) from None
-    scale = data.get("exposure_scale", 1.0)
-    if not isinstance(scale, int | float) or isinstance(scale, bool) or not scale > 0:
-        raise LightstageError(f"{path}: exposure_scale: expected a positive number, got {scale!r}")
-    notes = data.get("notes", {}) or {}
-    if not isinstance(notes, dict):
-        raise LightstageError(f"{path}: notes: expected a mapping")
-    return CaptureInfo(template, float(scale), str(data.get("object_name", "")), notes)
+    return load(CaptureInfo, data, str(path))
 
 
 def save_capture_info(info: CaptureInfo, path: str | os.PathLike[str]) -> None:

@@ -18,6 +18,7 @@ from typing import Any
 import yaml
 
 from lightstage.atomic import write_text_atomic
+from lightstage.config import check_keys
 from lightstage.errors import LightstageError
 
 PROBE_FILE = "probe/probe.yaml"
@@ -73,10 +74,14 @@ def _check_template(path: Path, key: str, template: Any, needs_light: bool) -> s
     return template
 
 
+PROBE_KEYS = ("format_version", "radius_m", "positions", "path_template", "ambient_template", "notes")
+
+
 def probe_info_from_dict(data: Any, path: Path) -> ProbeInfo:
     """Validate a probe.yaml mapping; errors name `path` and the field."""
     if not isinstance(data, dict):
         raise LightstageError(f"{path}: expected a mapping at the top level")
+    check_keys(data, PROBE_KEYS, (), str(path))
     version = data.get("format_version", PROBE_FORMAT_VERSION)
     if version != PROBE_FORMAT_VERSION:
         raise LightstageError(f"{path}: format_version: expected {PROBE_FORMAT_VERSION}, got {version!r}")

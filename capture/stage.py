@@ -16,6 +16,7 @@ import yaml
 
 from lightstage.atomic import write_text_atomic
 from lightstage.cameras import PinholeCamera
+from lightstage.config import check_keys, describe
 from lightstage.errors import LightstageError
 from lightstage.rig import TurntableAxis, camera_pose_in_world, light_position_in_world
 
@@ -199,8 +200,13 @@ class _Reader:
         if kind is float and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
         if not isinstance(value, kind) or isinstance(value, bool) and kind is not bool:
-            raise self.fail(name, f"expected {getattr(kind, '__name__', kind)}, got {value!r}")
+            raise self.fail(name, f"expected {describe(kind)}, got {value!r}")
         return value
+
+    def keys(self, d: Any, known: tuple[str, ...], *where: str | int) -> None:
+        """Reject a key of mapping `d` (at `where`) that stage.yaml does not have, suggesting the closest."""
+        if isinstance(d, dict):
+            check_keys(d, known, where, self.source)
 
     def array(self, d: Any, key: str, where: str, shape: tuple[int, ...], default: Any = ...) -> np.ndarray:
         value = self.get(d, key, where, list, default)
@@ -218,8 +224,24 @@ class _Reader:
         return arr
 
 
+_TOP_KEYS = (
+    "format_version",
+    "name",
+    "units",
+    "sphere_radius",
+    "centre_height",
+    "resolution",
+    "saturation",
+    "turntable_axis",
+    "groups",
+    "cameras",
+    "lights",
+)
+
+
 def stage_from_dict(data: Any, source: str = "stage.yaml") -> Stage:
-    """Build and validate a Stage from a parsed YAML mapping."""
+    """Build and validate a Stage from a parsed YAML mapping; a key stage.yaml does not have is an error
+    suggesting the closest one (`stage.yaml: unknown key 'sphere_radus' (did you mean 'sphere_radius'?)`)."""
     r = _Reader(source)
     if not isinstance(data, dict):
         raise r.fail("<top>", "expected a mapping")
@@ -228,13 +250,19 @@ def stage_from_dict(data: Any, source: str = "stage.yaml") -> Stage:
         raise r.fail(
             "format_version", f"unsupported version {version} (this lightstage reads {STAGE_FORMAT_VERSION})"
         )
+    r.keys(data, _TOP_KEYS)
     res = r.get(data, "resolution", "", dict)
+    r.keys(res, ("width", "height"), "resolution")
     axis = r.get(data, "turntable_axis", "", dict, {})
+    r.keys(axis, ("direction", "point"), "turntable_axis")
     cameras = []
     for i, c in enumerate(r.get(data, "cameras", "", list)):
         where = f"cameras[{i}]"
+        r.keys(c, ("id", "intrinsics", "pose", "distortion"), "cameras", i)
         intr = r.get(c, "intrinsics", where, dict)
+        r.keys(intr, ("fx", "fy", "cx", "cy"), "cameras", i, "intrinsics")
         pose = r.get(c, "pose", where, dict)
+        r.keys(pose, ("R", "t"), "cameras", i, "pose")
         cameras.append(
             CameraSpec(
                 id=r.get(c, "id", where, str),
@@ -251,6 +279,7 @@ def stage_from_dict(data: Any, source: str = "stage.yaml") -> Stage:
     lights = []
     for i, lt in enumerate(r.get(data, "lights", "", list)):
         where = f"lights[{i}]"
+        r.keys(lt, ("index", "position", "direction", "intensity"), "lights", i)
         index = r.get(lt, "index", where, int)
         if isinstance(lt, dict) and "direction" in lt:
             if "position" in lt:
@@ -271,6 +300,7 @@ def stage_from_dict(data: Any, source: str = "stage.yaml") -> Stage:
     groups = []
     for i, g in enumerate(r.get(data, "groups", "", list)):
         where = f"groups[{i}]"
+        r.keys(g, ("name", "yaw_deg"), "groups", i)
         groups.append(GroupSpec(r.get(g, "name", where, str), r.get(g, "yaw_deg", where, float)))
     stage = Stage(
         name=str(r.get(data, "name", "", str, "stage")),

@@ -27,6 +27,7 @@ from typing import Any
 from lightstage import frames
 from lightstage.atomic import write_json_atomic
 from lightstage.capture.layout import Capture, open_capture
+from lightstage.config import load, require
 from lightstage.errors import LightstageError
 
 # Every status a frame can get; only `ok` frames are usable.
@@ -75,6 +76,8 @@ class FrameRecord:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> FrameRecord:
+        """A record this module wrote (`to_dict`), not user input: read as it is, keys it does not know are
+        left out (the strict config loader is for configs; this runs once per frame of a 60k-frame scan)."""
         d = dict(d)
         d["width"], d["height"] = d.pop("resolution", [0, 0])
         names = {f.name for f in fields(cls)}
@@ -674,36 +677,23 @@ class ValidateConfig:
     max_bad_fraction: float = 0.05  # more bad frames than this fraction makes the capture unusable
     timeout_s: float = DEFAULT_TIMEOUT_S  # per decoded file
 
+    def __post_init__(self) -> None:
+        require(
+            self.workers is None or self.workers >= 1,
+            "workers",
+            f"expected a positive integer or null, got {self.workers!r}",
+        )
+        require(
+            0.0 <= self.max_bad_fraction <= 1.0,
+            "max_bad_fraction",
+            f"expected a value in [0, 1], got {self.max_bad_fraction!r}",
+        )
+        require(self.timeout_s > 0, "timeout_s", f"expected a positive number, got {self.timeout_s!r}")
+
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> ValidateConfig:
-        """Build from a mapping; unknown keys or wrong types are a LightstageError naming the key."""
-        d = dict(d or {})
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise LightstageError(
-                f"validate: unknown config key(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})"
-            )
-        cfg = cls(**d)
-        if not isinstance(cfg.deep, bool):
-            raise LightstageError(f"validate.deep: expected true/false, got {cfg.deep!r}")
-        if cfg.workers is not None and (
-            isinstance(cfg.workers, bool) or not isinstance(cfg.workers, int) or cfg.workers < 1
-        ):
-            raise LightstageError(
-                f"validate.workers: expected a positive integer or null, got {cfg.workers!r}"
-            )
-        for key in ("max_bad_fraction", "timeout_s"):
-            v = getattr(cfg, key)
-            if isinstance(v, bool) or not isinstance(v, int | float):
-                raise LightstageError(f"validate.{key}: expected a number, got {v!r}")
-        if not 0.0 <= cfg.max_bad_fraction <= 1.0:
-            raise LightstageError(
-                f"validate.max_bad_fraction: expected a value in [0, 1], got {cfg.max_bad_fraction!r}"
-            )
-        if not cfg.timeout_s > 0:
-            raise LightstageError(f"validate.timeout_s: expected a positive number, got {cfg.timeout_s!r}")
-        return cfg
+        """The strict loader (`lightstage.config`): unknown keys, wrong types and bad values name the key."""
+        return load(cls, d)
 
 
 def run_validate(

@@ -118,9 +118,10 @@ def _rebuild(cls: type, state: dict[str, Any]) -> ConfigError:
 
 
 def suggest(name: str, known: Iterable[str]) -> str | None:
-    """The known name closest to `name` (difflib), or None when nothing is close."""
-    close = difflib.get_close_matches(str(name), [str(k) for k in known], n=1, cutoff=0.6)
-    return close[0] if close else None
+    """The known name closest to `name` (difflib, ignoring case), or None when nothing is close."""
+    by_lower = {str(k).lower(): str(k) for k in known}
+    close = difflib.get_close_matches(str(name).lower(), list(by_lower), n=1, cutoff=0.6)
+    return by_lower[close[0]] if close else None
 
 
 def check_keys(

@@ -6,13 +6,14 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from lightstage.atomic import write_json_atomic
+from lightstage.config import load, require
 from lightstage.errors import LightstageError
 from lightstage.ids import ViewId
 from lightstage.workdir import WorkDir
@@ -36,29 +37,17 @@ class BoundsConfig:
     margin: float = 0.1
     force: bool = False
 
+    def __post_init__(self) -> None:
+        require(self.resolution >= 8, "resolution", f"must be >= 8, got {self.resolution}")
+        require(self.passes >= 1, "passes", f"must be >= 1, got {self.passes}")
+        require(0 < self.consistency <= 1, "consistency", f"must be in (0, 1], got {self.consistency}")
+        require(self.min_views >= 1, "min_views", f"must be >= 1, got {self.min_views}")
+        require(self.margin >= 0, "margin", f"must be >= 0, got {self.margin}")
+
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> BoundsConfig:
-        known = {f.name: f for f in fields(cls)}
-        out = {}
-        for k, v in d.items():
-            if k not in known:
-                raise LightstageError(f"bounds config: unknown key {k!r} (known: {', '.join(known)})")
-            want = type(getattr(cls(), k))
-            if want is float and isinstance(v, int) and not isinstance(v, bool):
-                v = float(v)
-            if not isinstance(v, want) or (want is not bool and isinstance(v, bool)):
-                raise LightstageError(f"bounds config: {k}: expected {want.__name__}, got {v!r}")
-            out[k] = v
-        cfg = cls(**out)
-        if (
-            cfg.resolution < 8
-            or cfg.passes < 1
-            or not 0 < cfg.consistency <= 1
-            or cfg.min_views < 1
-            or cfg.margin < 0
-        ):
-            raise LightstageError(f"bounds config: out of range: {cfg}")
-        return cfg
+        """The strict loader (`lightstage.config`): unknown keys, wrong types and bad values name the key."""
+        return load(cls, d)
 
 
 @dataclass(frozen=True)

@@ -14,13 +14,14 @@ import json
 import os
 import shutil
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from lightstage.atomic import atomic_path, write_json_atomic
+from lightstage.config import load, require, require_choice
 from lightstage.errors import LightstageError
 from lightstage.ids import FrameId, ViewId
 from lightstage.records.shards import (
@@ -60,37 +61,25 @@ class ShardConfig:
     compress_test: bool = True
     force: bool = False
 
+    def __post_init__(self) -> None:
+        require(
+            0 < self.foreground_fraction <= 1,
+            "foreground_fraction",
+            f"must be in (0, 1], got {self.foreground_fraction}",
+        )
+        require(0 <= self.band_fraction <= 1, "band_fraction", f"must be in [0, 1], got {self.band_fraction}")
+        for k in ("rays_per_image", "rays_per_shard"):
+            v = getattr(self, k)
+            ok = (k == "rays_per_image" and v == 0) or (v >= 8 and v % 8 == 0)
+            require(ok, k, f"must be a positive multiple of 8, got {v}")
+        require_choice(self.background_target, "background_target", ("zero", "pixel"))
+        require(self.border_px >= 0, "border_px", f"must be >= 0, got {self.border_px}")
+        require(self.workers >= 0, "workers", f"must be >= 0, got {self.workers}")
+
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> ShardConfig:
-        known = {f.name for f in fields(cls)}
-        out = {}
-        for k, v in d.items():
-            if k not in known:
-                raise LightstageError(f"shard config: unknown key {k!r} (known: {', '.join(sorted(known))})")
-            want = type(getattr(cls(), k))
-            if want is float and isinstance(v, int) and not isinstance(v, bool):
-                v = float(v)
-            if not isinstance(v, want) or (want is not bool and isinstance(v, bool)):
-                raise LightstageError(f"shard config: {k}: expected {want.__name__}, got {v!r}")
-            out[k] = v
-        cfg = cls(**out)
-        if not 0 < cfg.foreground_fraction <= 1 or not 0 <= cfg.band_fraction <= 1:
-            raise LightstageError(
-                "shard config: foreground_fraction must be in (0, 1] and band_fraction in [0, 1]"
-            )
-        for k in ("rays_per_image", "rays_per_shard"):
-            v = getattr(cfg, k)
-            if k == "rays_per_image" and v == 0:
-                continue
-            if v < 8 or v % 8:
-                raise LightstageError(f"shard config: {k}: must be a positive multiple of 8, got {v}")
-        if cfg.background_target not in ("zero", "pixel"):
-            raise LightstageError(
-                f"shard config: background_target: 'zero' or 'pixel', got {cfg.background_target!r}"
-            )
-        if cfg.border_px < 0 or cfg.workers < 0:
-            raise LightstageError("shard config: border_px and workers must be >= 0")
-        return cfg
+        """The strict loader (`lightstage.config`): unknown keys, wrong types and bad values name the key."""
+        return load(cls, d)
 
 
 # ---- geometry --------------------------------------------------------------------------------------

@@ -21,6 +21,7 @@ import yaml
 
 from lightstage.atomic import write_json_atomic, write_text_atomic
 from lightstage.capture.stage import Stage
+from lightstage.config import ConfigError, check_keys, load
 from lightstage.errors import LightstageError
 from lightstage.ids import FrameId, ViewId
 from lightstage.lights import paper_number_to_index
@@ -88,6 +89,7 @@ class FrameSet:
     def from_dict(cls, d: Any, where: str) -> FrameSet:
         if not isinstance(d, dict) or not isinstance(d.get("groups"), dict):
             raise LightstageError(f"{where}: expected a mapping with 'groups'")
+        check_keys(d, ("groups", "excluded"), (), where)
         groups = {}
         for g, v in d["groups"].items():
             if (
@@ -96,6 +98,7 @@ class FrameSet:
                 or not isinstance(v.get("lights"), list)
             ):
                 raise LightstageError(f"{where}.groups.{g}: expected {{cameras: [...], lights: [...]}}")
+            check_keys(v, ("cameras", "lights"), ("groups", str(g)), where)
             groups[str(g)] = (tuple(str(c) for c in v["cameras"]), tuple(int(x) for x in v["lights"]))
         excluded = frozenset(parse_frame_id(s, f"{where}.excluded") for s in d.get("excluded", []))
         return cls(groups, excluded)
@@ -278,7 +281,8 @@ def builtin_protocol(name: str) -> Protocol:
     raise LightstageError(f"unknown protocol {name!r} (built in: {', '.join(PROTOCOLS)}; or a YAML file)")
 
 
-_YAML_KEYS = {"name", "base", "cameras", "lights", "groups", "test_views"}
+_YAML_KEYS = ("name", "base", "cameras", "lights", "groups", "test_views")
+INLINE_PROTOCOL = "split config: protocol"  # the source (and default name) of a protocol given inline
 
 
 def protocol_from_yaml(path: str | os.PathLike[str]) -> Protocol:
@@ -293,22 +297,30 @@ def protocol_from_yaml(path: str | os.PathLike[str]) -> Protocol:
     return protocol_from_dict(d, str(path))
 
 
-def protocol_from_dict(d: Any, source: str = "protocol") -> Protocol:
-    """Build a Protocol from a parsed mapping (see `protocol_from_yaml`); unknown keys are errors."""
+def protocol_from_dict(
+    d: Any, source: str | None = "protocol", path: tuple[str, ...] = (), name: str | None = None
+) -> Protocol:
+    """Build a Protocol from a parsed mapping (see `protocol_from_yaml`). Unknown keys and bad values are a
+    ConfigError naming `source` and the key below `path`; `name` defaults to the stem of `source`."""
+
+    def fail(problem: str, *key: str) -> ConfigError:
+        return ConfigError(problem, (*path, *key), source)
+
     if not isinstance(d, dict):
-        raise LightstageError(f"{source}: expected a mapping")
-    unknown = set(d) - _YAML_KEYS
-    if unknown:
-        raise LightstageError(
-            f"{source}: unknown key(s) {', '.join(sorted(unknown))} (known: {', '.join(sorted(_YAML_KEYS))})"
-        )
-    base = builtin_protocol(str(d.get("base", "paper")))
-    kw: dict[str, Any] = {"name": str(d.get("name", Path(source).stem)), "light_rule": base.light_rule}
+        raise fail(f"expected a mapping, got {d!r}")
+    check_keys(d, _YAML_KEYS, path, source)
+    base_name = d.get("base", "paper")
+    if base_name not in PROTOCOLS:
+        raise fail(f"expected one of {', '.join(PROTOCOLS)}, got {base_name!r}", "base")
+    base = builtin_protocol(base_name)
+    default_name = name if name is not None else Path(source or "protocol").stem
+    kw: dict[str, Any] = {"name": str(d.get("name", default_name)), "light_rule": base.light_rule}
     kw["test_views"] = base.test_views
     for key in ("cameras", "lights", "groups"):
         sub = d.get(key, {}) or {}
-        if not isinstance(sub, dict) or set(sub) - {"train", "test"}:
-            raise LightstageError(f"{source}: {key}: expected a mapping with 'train' and/or 'test'")
+        if not isinstance(sub, dict):
+            raise fail(f"expected a mapping with 'train' and/or 'test', got {sub!r}", key)
+        check_keys(sub, ("train", "test"), (*path, key), source)
         for part in ("train", "test"):
             if part in sub:
                 v = sub[part]
@@ -318,9 +330,7 @@ def protocol_from_dict(d: Any, source: str = "protocol") -> Protocol:
                     or v in ("rest", "all")
                 )
                 if not ok:
-                    raise LightstageError(
-                        f"{source}: {key}.{part}: expected a count, a list or 'rest', got {v!r}"
-                    )
+                    raise fail(f"expected a count, a list or 'rest', got {v!r}", key, part)
                 kw[f"{part}_{key}"] = v
     lights = d.get("lights") or {}
     if (
@@ -328,13 +338,11 @@ def protocol_from_dict(d: Any, source: str = "protocol") -> Protocol:
         and "test" not in lights
         and not isinstance(lights.get("train", []), list)
     ):
-        raise LightstageError(
-            f"{source}: lights.train: with base synthetic and no lights.test, give an explicit list"
-        )
+        raise fail("with base synthetic and no lights.test, give an explicit list", "lights", "train")
     if "test_views" in d:
         tv = d["test_views"]
         if tv is not None and (not isinstance(tv, int) or isinstance(tv, bool) or tv < 1):
-            raise LightstageError(f"{source}: test_views: expected a positive integer or null, got {tv!r}")
+            raise fail(f"expected a positive integer or null, got {tv!r}", "test_views")
         kw["test_views"] = tv
     params = {k: v for k, v in d.items() if k != "name"}
     return Protocol(parameters=params, **kw)
@@ -600,27 +608,20 @@ class SplitConfig:
     protocol: str | dict[str, Any] = "paper"
     stage_preset: str | None = None
 
+    def __post_init__(self) -> None:
+        if isinstance(self.protocol, dict):  # an inline protocol is checked here, naming its key
+            protocol_from_dict(self.protocol, None, ("protocol",))
+
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> SplitConfig:
-        unknown = set(d) - {"protocol", "stage_preset"}
-        if unknown:
-            raise LightstageError(f"split config: unknown key(s) {', '.join(sorted(unknown))}")
-        if "protocol" in d and not isinstance(d["protocol"], str | dict):
-            raise LightstageError(
-                f"split config: protocol: expected a name, a file or a mapping, got {d['protocol']!r}"
-            )
-        if isinstance(d.get("protocol"), dict):
-            protocol_from_dict(d["protocol"], "split config: protocol")  # validate early, naming the key
-        sp = d.get("stage_preset")
-        if sp is not None and not isinstance(sp, str):
-            raise LightstageError(f"split config: stage_preset: expected a string, got {sp!r}")
-        return cls(d.get("protocol", "paper"), sp)
+        """The strict loader (`lightstage.config`); an inline protocol's keys are checked too."""
+        return load(cls, d)
 
 
 def load_protocol(spec: str | dict[str, Any]) -> Protocol:
     """A built-in protocol name, a YAML file path, or an inline mapping with the YAML keys."""
     if isinstance(spec, dict):
-        return protocol_from_dict(spec, "split config: protocol")
+        return protocol_from_dict(spec, INLINE_PROTOCOL)
     if spec in PROTOCOLS:
         return builtin_protocol(spec)
     if Path(spec).is_file():

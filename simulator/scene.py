@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from lightstage.config import load
 from lightstage.errors import LightstageError
 
 # Pixels per ray-casting band (keeps memory bounded at any resolution).
@@ -130,35 +131,10 @@ class SimScene:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> SimScene:
-        try:
-            return cls(
-                body=tuple(_ellipsoid(e) for e in d["body"]),
-                core=_ellipsoid(d["core"]),
-                stand=Cylinder(
-                    d["stand"]["name"],
-                    tuple(d["stand"]["centre_xy"]),
-                    float(d["stand"]["radius"]),
-                    float(d["stand"]["z_min"]),
-                    float(d["stand"]["z_max"]),
-                ),
-                material=Material(**{k: _tuplify(v) for k, v in d["material"].items()}),
-                nuisances=Nuisances(**d["nuisances"]),
-                light_intensity=float(d["light_intensity"]),
-                texture_seed=int(d["texture_seed"]),
-                led_spread=float(d.get("led_spread", 0.0)),
-                led_colour_spread=float(d.get("led_colour_spread", 0.0)),
-            )
-        except (KeyError, TypeError, ValueError) as e:
-            raise LightstageError(f"scene description: malformed ({type(e).__name__}: {e})") from None
-
-
-def _tuplify(v: Any) -> Any:
-    return tuple(v) if isinstance(v, list) else v
-
-
-def _ellipsoid(d: dict[str, Any]) -> Ellipsoid:
-    return Ellipsoid(d["name"], tuple(map(float, d["centre"])), tuple(map(float, d["radii"])))
+    def from_dict(cls, d: dict[str, Any], source: str = "scene description") -> SimScene:
+        """Read `to_dict`'s output with the strict loader (its derived `object_bbox` and `description` are
+        left out); a malformed or misspelt key is one ConfigError naming it."""
+        return load(cls, d, source, ignore=("object_bbox", "description"))
 
 
 REALISM = ("stage", "clean")

@@ -81,12 +81,20 @@ def test_yaml_round_trip(paper, tmp_path):
         ),
         (lambda d: d["lights"][7].update(index=9), "lights[9].index: duplicate index 9"),
         (lambda d: d.update(lights=[]), "lights: must not be empty"),
-        (lambda d: d["groups"][1].update(name=40), "groups[1].name: expected str"),
+        (lambda d: d["groups"][1].update(name=40), "groups[1].name: expected a string, got 40"),
         (lambda d: d["groups"][2].update(yaw_deg=400), "groups[2].yaw_deg: must be in [0, 360)"),
         (lambda d: d["resolution"].pop("width"), "resolution.width: missing"),
         (lambda d: d["cameras"][0]["intrinsics"].update(fx=-3.0), "focal lengths must be positive"),
         (lambda d: d["lights"][0].update(position=[1, 2]), "lights[0].position: expected shape (3,)"),
-        (lambda d: d.update(saturation="high"), "saturation: expected float"),
+        (lambda d: d.update(saturation="high"), "saturation: expected a number, got 'high'"),
+        (
+            lambda d: d.update(sphere_radus=1.5),
+            "unknown key 'sphere_radus' (did you mean 'sphere_radius'?)",
+        ),
+        (
+            lambda d: d["cameras"][2]["pose"].update(T=[0, 0, 1]),
+            "unknown key 'cameras[2].pose.T' (did you mean 'cameras[2].pose.t'?)",
+        ),
     ],
 )
 def test_validation_messages_name_the_field(paper, mutate, message):
