@@ -1,4 +1,4 @@
-"""The preprocess stage's configuration: one dataclass with defaults, validated from a mapping by `from_dict`."""
+"""The preprocess stage's configuration: one dataclass with defaults, read by the strict loader (`from_dict`)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import json
 from dataclasses import dataclass
 from typing import Any
 
-from lightstage.errors import LightstageError
+from lightstage.config import ConfigError, load
 from lightstage.frames import COMPRESSIONS
 
 
@@ -77,32 +77,16 @@ class PreprocessConfig:
     exposure_percentile: float = 99.0  # automatic exposure maps this foreground luminance percentile to 1
 
     @classmethod
-    def from_dict(cls, data: Any, source: str = "preprocess") -> PreprocessConfig:
-        """Build from a mapping; unknown keys and wrong types raise a LightstageError naming the key."""
-        if data is None:
-            return cls()
-        if not isinstance(data, dict):
-            raise LightstageError(f"{source}: expected a mapping, got {type(data).__name__}")
-        fields = {f.name: f for f in dataclasses.fields(cls)}
-        kwargs: dict[str, Any] = {}
-        for key, value in data.items():
-            if key not in fields:
-                raise LightstageError(f"{source}.{key}: unknown key (known: {', '.join(fields)})")
-            kind = type(fields[key].default)
-            if kind is float and isinstance(value, int) and not isinstance(value, bool):
-                value = float(value)
-            if not isinstance(value, kind) or (isinstance(value, bool) and kind is not bool):
-                raise LightstageError(f"{source}.{key}: expected {kind.__name__}, got {value!r}")
-            kwargs[key] = value
-        config = cls(**kwargs)
-        config.validate(source)
-        return config
+    def from_dict(cls, data: Any, source: str | None = None) -> PreprocessConfig:
+        """The strict loader (`lightstage.config`): unknown keys, wrong types and out-of-range values are a
+        ConfigError naming `source` (the file, when there is one) and the key."""
+        return load(cls, data, source)
 
-    def validate(self, source: str = "preprocess") -> None:
-        """Raise a LightstageError naming the key for out-of-range values."""
+    def __post_init__(self) -> None:
+        """Out-of-range values are a ConfigError naming the key."""
 
-        def bad(key: str, what: str) -> LightstageError:
-            return LightstageError(f"{source}.{key}: {what}, got {getattr(self, key)!r}")
+        def bad(key: str, what: str) -> ConfigError:
+            return ConfigError(f"{what}, got {getattr(self, key)!r}", key)
 
         try:
             qs = self.quantiles()

@@ -200,11 +200,11 @@ def test_streaming_stats_equal_direct_and_tree_merge_equals_whole() -> None:
 
 def test_config_from_dict_names_bad_keys() -> None:
     assert PreprocessConfig.from_dict({"flare_threshold": 1, "compression": "piz"}).flare_threshold == 1.0
-    with pytest.raises(LightstageError, match="preprocess.nope: unknown key"):
-        PreprocessConfig.from_dict({"nope": 1})
-    with pytest.raises(LightstageError, match="preprocess.band_width: expected int"):
+    with pytest.raises(LightstageError, match=r"^p\.yaml: unknown key 'nope' \(known: compression, "):
+        PreprocessConfig.from_dict({"nope": 1}, "p.yaml")
+    with pytest.raises(LightstageError, match="^band_width: expected an integer, got 'wide'"):
         PreprocessConfig.from_dict({"band_width": "wide"})
-    with pytest.raises(LightstageError, match="preprocess.compression"):
+    with pytest.raises(LightstageError, match="^compression: expected one of"):
         PreprocessConfig.from_dict({"compression": "dwaa"})
 
 
