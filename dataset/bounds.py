@@ -276,7 +276,7 @@ def _inputs_key(work: WorkDir, views: list[ViewId], config: BoundsConfig) -> str
 
 def _training_views(work: WorkDir, calib_views: list[ViewId]) -> list[ViewId]:
     if work.split.is_file():
-        from lightstage.dataset.split import load_split
+        from lightstage.records.split import load_split
 
         wanted = set(load_split(work.split).train.views())
         return [v for v in calib_views if v in wanted]

@@ -498,8 +498,8 @@ def run_shard(
     """Write WORK/shards/{train/*.npy, test/*.npz, manifest.json} from the split, calibration, bounds and
     preprocessed frames; computes bounds.json first when absent. Resumable; reports to reports/shard.json."""
     from lightstage.dataset.bounds import BoundsConfig, load_bounds, run_bounds
-    from lightstage.dataset.split import load_split
     from lightstage.records.calibration import Calibration
+    from lightstage.records.split import load_split
 
     t0 = time.perf_counter()
     root = work.shards_dir

@@ -382,7 +382,7 @@ def test_simulator_writes_a_clean_render_of_every_test_frame(tiny_capture):
     import cv2
 
     from lightstage.capture.layout import open_capture
-    from lightstage.dataset.split import builtin_protocol, resolve
+    from lightstage.dataset.protocols import builtin_protocol, resolve
     from lightstage.preprocess.downscale import decode_downscale
     from lightstage.tonemap import auto_exposure
     from lightstage.training.ceiling import CleanRenders

@@ -12,13 +12,14 @@ from support.fixtures import SPHERE_CENTRE, SPHERE_RADIUS, make_synthetic_work
 from lightstage.cameras import pixel_rays
 from lightstage.dataset.bounds import BoundsConfig, load_bounds, run_bounds
 from lightstage.dataset.shards import ShardConfig, run_shard, sampling_zones, verify_shards, view_rays
-from lightstage.dataset.split import SplitConfig, load_split, run_split
+from lightstage.dataset.split import SplitConfig, run_split
 from lightstage.errors import LightstageError
 from lightstage.frames import read_exr
 from lightstage.ids import FrameId, ViewId
 from lightstage.pipelines.cli import main
 from lightstage.records.calibration import Calibration
 from lightstage.records.shards import RAY_DTYPE, load_manifest
+from lightstage.records.split import load_split
 from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND, WorkDir
 
 CFG = ShardConfig(rays_per_image=64, rays_per_shard=256, workers=1, border_px=4)

@@ -9,19 +9,13 @@ import pytest
 
 from lightstage.capture.presets import make_stage, paper_stage
 from lightstage.capture.stage import LightSpec, Stage
-from lightstage.dataset.split import (
-    SplitConfig,
-    builtin_protocol,
-    hemisphere_grid,
-    load_split,
-    protocol_from_dict,
-    resolve,
-    run_split,
-)
+from lightstage.dataset.protocols import builtin_protocol, hemisphere_grid, protocol_from_dict, resolve
+from lightstage.dataset.split import SplitConfig, run_split
 from lightstage.errors import LightstageError
 from lightstage.ids import FrameId
 from lightstage.lights import paper_number_to_index
 from lightstage.pipelines.cli import main
+from lightstage.records.split import load_split
 from lightstage.workdir import WorkDir
 
 PAPER_TEST = [43, 73, 105, 137, 169, 203, 233, 265, 297, 329]

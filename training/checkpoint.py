@@ -4,6 +4,7 @@ position in one file, written atomically (torch.save to a temp file + os.replace
 
 from __future__ import annotations
 
+import io
 import random
 from pathlib import Path
 from typing import Any
@@ -11,7 +12,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from lightstage.atomic import atomic_path
+from lightstage.atomic import write_bytes_atomic
 from lightstage.errors import LightstageError
 
 FORMAT_VERSION = 1
@@ -52,9 +53,12 @@ def set_rng_state(state: dict[str, Any]) -> None:
 
 
 def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
-    """Write `payload` (plus the format version) atomically."""
-    with atomic_path(path) as tmp:
-        torch.save({"format": FORMAT_VERSION, **payload}, tmp)
+    """Write `payload` (plus the format version) atomically. torch.save fills a buffer that Python then
+    writes: on a full disk torch's own writer raises an opaque RuntimeError, Python an OSError (ENOSPC)
+    naming the file."""
+    buffer = io.BytesIO()
+    torch.save({"format": FORMAT_VERSION, **payload}, buffer)
+    write_bytes_atomic(path, buffer.getbuffer())
 
 
 def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
@@ -68,6 +72,58 @@ def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> dic
     if not isinstance(data, dict) or data.get("format") != FORMAT_VERSION:
         raise LightstageError(f"{path}: not a lightstage checkpoint of format {FORMAT_VERSION}")
     return data
+
+
+# Config keys a resumed training may change: how long it trains, how often it logs, evaluates and checkpoints,
+# how it renders previews and the final evaluation, how many loader processes read the shards (the batch
+# order is theirs to keep). Any other change would meet model, optimiser and schedule state made under the old
+# value (Adam restores its lr and betas, the schedule its base lr, the stats their exposure), so it is refused.
+RESUME_SAFE_KEYS = frozenset(
+    {
+        "name",
+        "optim.steps",  # upward only: more steps stretch the decay from the resumed step on
+        "eval.every",
+        "eval.images",
+        "eval.chunk",
+        "eval.max_images",
+        "eval.lpips_weights",
+        "eval.lpips_linear_weights",
+        "log_every",
+        "checkpoint_every",
+        "loader_workers",
+    }
+)
+_ABSENT = object()
+
+
+def resume_conflicts(saved: dict[str, Any], current: dict[str, Any]) -> list[str]:
+    """`key: old → new` for every config key (dotted) in which this run's config differs from the one the
+    checkpoint was trained with, except the RESUME_SAFE_KEYS (optim.steps only when it grows)."""
+    old, new = _flatten(saved), _flatten(current)
+    out = []
+    for key in [*new, *(k for k in old if k not in new)]:
+        a, b = old.get(key, _ABSENT), new.get(key, _ABSENT)
+        if a == b or (key in RESUME_SAFE_KEYS and key != "optim.steps"):
+            continue
+        if key == "optim.steps" and isinstance(a, int) and isinstance(b, int) and b >= a:
+            continue
+        out.append(f"{key}: {_show(a)} → {_show(b)}")
+    return out
+
+
+def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """{"optim": {"lr": 1}} -> {"optim.lr": 1}."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _show(v: Any) -> str:
+    return "(absent)" if v is _ABSENT else repr(v) if isinstance(v, str) else str(v)
 
 
 def _tuples_to_lists(x: Any) -> Any:

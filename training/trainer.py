@@ -20,11 +20,13 @@ import torch
 from tqdm import tqdm
 
 from lightstage.atomic import write_json_atomic
+from lightstage.errors import LightstageError
 from lightstage.records.shards import TestImage
 from lightstage.tonemap import auto_exposure
 from lightstage.training.checkpoint import (
     CHECKPOINT_NAME,
     load_checkpoint,
+    resume_conflicts,
     rng_state,
     save_checkpoint,
     set_rng_state,
@@ -129,8 +131,13 @@ def fit(
     ckpt_path = out_dir / CHECKPOINT_NAME
     if resume and ckpt_path.is_file():
         ck = load_checkpoint(ckpt_path, map_location=device)
-        model.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optimizer"])
+        _check_resumable(ckpt_path, ck, cfg)
+        try:
+            model.load_state_dict(ck["model"])
+            opt.load_state_dict(ck["optimizer"])
+        except (RuntimeError, ValueError, KeyError) as e:  # the checkpoint's tensors do not fit this model
+            reason = str(e).strip().splitlines()[0][:300] if str(e).strip() else type(e).__name__
+            raise LightstageError(f"{ckpt_path}: does not fit this model ({reason})") from None
         sched.load_state_dict(ck["scheduler"])
         if scaler is not None and ck.get("scaler"):
             scaler.load_state_dict(ck["scaler"])
@@ -242,6 +249,25 @@ def fit(
     if model_out is not None:
         model_out.append(model)
     return summary
+
+
+def _check_resumable(path: Path, ck: dict[str, Any], cfg: TrainConfig) -> None:
+    """Refuse to resume a checkpoint trained with another config (bar the keys RESUME_SAFE_KEYS allows),
+    naming each differing key with its old and new value."""
+    saved = ck.get("config")
+    if not isinstance(saved, dict):
+        return
+    try:  # keys added to TrainConfig since the checkpoint was written take their defaults
+        saved = TrainConfig.from_dict(saved).to_dict()
+    except (LightstageError, TypeError, ValueError):
+        pass
+    conflicts = resume_conflicts(saved, cfg.to_dict())
+    if conflicts:
+        raise LightstageError(
+            f"{path}: cannot resume with a config different from the checkpoint's ({'; '.join(conflicts)}): "
+            "resume with the checkpoint's config (only optim.steps may grow, and evaluation, logging and "
+            f"checkpoint frequencies change), or delete {path.parent} to train from scratch"
+        )
 
 
 def _lap(train_seconds: float, t_mark: float, device: torch.device) -> tuple[float, float]:
