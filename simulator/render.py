@@ -17,7 +17,8 @@ from lightstage.cameras import PinholeCamera, pixel_rays
 from lightstage.frames import write_exr, write_image
 from lightstage.ids import ViewId
 from lightstage.records.ground_truth import CLEAN_TEMPLATE, GroundTruth
-from lightstage.simulator.scene import KIND_NONE, SimScene, ViewHits, cast_view, first_hit, shade
+from lightstage.simulator.scene import KIND_NONE, SimScene
+from lightstage.simulator.shading import ViewHits, cast_view, first_hit, shade
 
 # An LED's beam (aimed at the stage centre) lights nothing beyond this angle off its axis.
 BEAM_HALF_ANGLE_DEG = 50.0

@@ -44,7 +44,8 @@ from lightstage.simulator.probe import (
     run_probe_job,
 )
 from lightstage.simulator.render import ViewJob, render_view, run_view_job
-from lightstage.simulator.scene import SimScene, cast_view, default_scene, led_intensities, render_hits
+from lightstage.simulator.scene import SimScene, default_scene, led_intensities
+from lightstage.simulator.shading import cast_view, render_hits
 
 CONTACT_SHEET = "contact_sheet.png"
 

@@ -282,7 +282,8 @@ def test_shading_does_not_create_energy() -> None:
     """White albedo at the top of the head and on the thin fin's rim: the outgoing flux is <= the irradiance for
     a light along the normal, and integrated over all light directions it stays below Lambert's (pi)."""
     from lightstage.capture.presets import fibonacci_cap
-    from lightstage.simulator.scene import KIND_OBJECT, ViewHits, default_scene, shade
+    from lightstage.simulator.scene import KIND_OBJECT, default_scene
+    from lightstage.simulator.shading import ViewHits, shade
 
     scene = default_scene()
     parts = {e.name: e for e in scene.body}
