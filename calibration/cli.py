@@ -38,7 +38,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _calibrate(args: argparse.Namespace) -> int:
-    from lightstage.calibration.run import CalibrateConfig, run_calibrate
+    from lightstage.calibration.config import CalibrateConfig
+    from lightstage.calibration.run import run_calibrate
     from lightstage.errors import LightstageError
     from lightstage.threads import set_library_threads
     from lightstage.workdir import WorkDir

@@ -9,6 +9,8 @@ jitters them; nothing in the well-lit images observes it).
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -16,7 +18,10 @@ from scipy.spatial.transform import Rotation
 
 from lightstage.calibration.register import Similarity, umeyama
 from lightstage.cameras import camera_center
+from lightstage.capture.layout import Capture
+from lightstage.errors import LightstageError
 from lightstage.records.calibration import Calibration
+from lightstage.rig import light_position_in_world
 
 
 def _stats(x: list[float] | np.ndarray) -> dict[str, float]:
@@ -97,3 +102,22 @@ def compare_to_truth(
     if light_floor is not None:
         out["light_position_floor_mm"] = _light_errors(light_floor, truth, None)
     return out
+
+
+def light_floor(capture: Capture, truth: Calibration) -> Calibration:
+    """The truth's rig poses carrying the NOMINAL rig-frame lights: the best a rig-locked light model can do."""
+    p_rig = capture.stage.light_positions_rig()
+    lights = {g: light_position_in_world(p_rig, y, truth.axis) for g, y in truth.yaws_deg.items()}
+    return Calibration("floor", {}, lights, truth.axis, truth.yaws_deg)
+
+
+def ball_centre_errors(probe_report: dict[str, Any], truth_path: Path) -> dict[str, float]:
+    """Per probe position, the distance (mm) of the fitted ball centre from the true one (rig frame)."""
+    try:
+        truth = json.loads(truth_path.read_text())["positions"]
+        return {
+            pos: round(1000.0 * float(np.linalg.norm(np.subtract(c, truth[pos]["ball_centre_rig"]))), 3)
+            for pos, c in probe_report["ball_centres_rig_m"].items()
+        }
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise LightstageError(f"{truth_path}: unreadable ({e})") from None

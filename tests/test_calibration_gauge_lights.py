@@ -1,4 +1,4 @@
-"""The gauge refit with observed lights (calibration.run.gauge_with_lights): exact lights keep the exact gauge,
+"""The gauge refit with observed lights (calibration.observed_lights.gauge_with_lights): exact lights keep the exact gauge,
 a light far off its nominal position (a wrong disc or a bad camera) is dropped instead of tilting the world."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from lightstage.calibration.observed_lights import gauge_with_lights
 from lightstage.calibration.register import Similarity, register_rig
-from lightstage.calibration.run import gauge_with_lights
 from lightstage.cameras import camera_center
 from lightstage.capture.presets import make_stage
 

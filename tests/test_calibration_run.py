@@ -13,8 +13,9 @@ import cv2
 import numpy as np
 import pytest
 
+from lightstage.calibration.config import CalibrateConfig
 from lightstage.calibration.export import colmap_image_name
-from lightstage.calibration.run import CalibrateConfig, run_calibrate
+from lightstage.calibration.run import run_calibrate
 from lightstage.cameras import opengl_c2w_to_opencv, pixel_rays, project
 from lightstage.capture.layout import open_capture
 from lightstage.errors import LightstageError
