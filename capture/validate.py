@@ -26,6 +26,7 @@ from typing import Any
 
 from lightstage import frames
 from lightstage.atomic import write_json_atomic
+from lightstage.capture.extra_files import unexpected_files_warning
 from lightstage.capture.layout import Capture, open_capture
 from lightstage.config import load, require
 from lightstage.errors import LightstageError
@@ -157,14 +158,15 @@ class ValidationResult:
         """A few lines for the terminal: counts and the first problems."""
         n, bad = len(self.records), self.problems
         head = f"{self.root}: {n} frames expected, {self.usable} usable"
+        warnings = [f"  warning: {w}" for w in self.warnings]
         if not bad:
-            return head + " (all ok)"
+            return "\n".join([head + " (all ok)", *warnings])
         counts = ", ".join(f"{s} {c}" for s, c in self.counts.items() if c and s != "ok")
         lines = [f"{head}; {counts}"]
         lines += [f"  {r.id}: {r.status}: {r.message}" for r in bad[:max_problems]]
         if len(bad) > max_problems:
             lines.append(f"  ... and {len(bad) - max_problems} more (see the report)")
-        return "\n".join(lines)
+        return "\n".join(lines + warnings)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -560,6 +562,7 @@ def scan_capture(
     )
     lossy = Counter(r.compression for r in records if r.compression in LOSSY_COMPRESSIONS)
     result.warnings += [f"{n} frames use lossy {c} compression" for c, n in sorted(lossy.items())]
+    result.warnings += unexpected_files_warning(capture)
     return result
 
 

@@ -9,6 +9,7 @@ against what `read_exr` can return. Only then does OpenEXR decode the pixels.
 
 from __future__ import annotations
 
+import errno
 import math
 import os
 import stat
@@ -22,6 +23,7 @@ import numpy as np
 from lightstage.atomic import atomic_path
 from lightstage.errors import LightstageError
 
+PNG_END = b"IEND\xaeB`\x82"  # the last 8 bytes of every PNG: the IEND chunk's type and CRC
 # No frame of a supported stage is larger than this (8192x5464 is 44.8 Mpx); guards hostile headers.
 MAX_PIXELS = 16384 * 16384
 # Ceiling on the bytes one decode may allocate (all channels of all parts), checked before decoding.
@@ -653,6 +655,24 @@ def write_image(path: str | os.PathLike[str], pixels: np.ndarray) -> None:
         out.close()
         if not ok:
             raise LightstageError(f"{path}: cannot write image ({oiio_error(out.geterror)})")
+        _check_written(tmp, path)
+
+
+def _check_written(tmp: Path, path: str | os.PathLike[str]) -> None:
+    """OpenImageIO reports success when its writes fail (a full disk leaves an empty or cut file): a written
+    image must be non-empty and a PNG must end with its IEND chunk. Otherwise an OSError naming `path`:
+    ENOSPC when the disk is full, EIO else."""
+    size = tmp.stat().st_size
+    whole = size > 0
+    if whole and tmp.suffix.lower() == ".png":
+        with tmp.open("rb") as f:
+            f.seek(max(0, size - len(PNG_END)))
+            whole = f.read() == PNG_END
+    if whole:
+        return
+    fs = os.statvfs(tmp.parent)
+    code = errno.ENOSPC if fs.f_bavail * fs.f_frsize < (1 << 20) else errno.EIO
+    raise OSError(code, f"{os.strerror(code)} (image write cut at {size} bytes)", os.fspath(path))
 
 
 def _has_exr_magic(path: Path) -> bool:

@@ -40,7 +40,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--clean", action="store_true", help="with --from/--only: remove the forced stages' outputs first"
     )
     run.add_argument("--no-progress", action="store_true", help="no progress bars")
-    run.set_defaults(func=_run)
+    run.set_defaults(func=_run, resolve_work=_run_work)
 
     demo = subparsers.add_parser(
         "demo",
@@ -65,21 +65,33 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     show.set_defaults(func=_config_show)
 
 
-def _run(args: argparse.Namespace) -> int:
+def _run_target(args: argparse.Namespace):  # noqa: ANN202 - (PipelineConfig, capture), imported lazily
+    """The pipeline config and capture of `run TARGET`: TARGET is a config file or a capture directory."""
     from lightstage.errors import LightstageError
     from lightstage.pipelines.config import load_pipeline_config
-    from lightstage.pipelines.runner import run_pipeline
-    from lightstage.workdir import WorkDir
 
     target: Path = args.target
     if target.is_file() or target.suffix in (".yaml", ".yml"):
         if args.config:
             raise LightstageError("give the config either as TARGET or with --config, not both")
         config = load_pipeline_config(target)
-        capture = config.capture
-    else:
-        config = load_pipeline_config(args.config)
-        capture = str(target)
+        return config, config.capture
+    return load_pipeline_config(args.config), str(target)
+
+
+def _run_work(args: argparse.Namespace) -> Path | None:
+    """The work directory of `run` without --work: the config's `work:` (the CLI locks it before _run)."""
+    config, _ = _run_target(args)
+    return Path(config.work) if config.work else None
+
+
+def _run(args: argparse.Namespace) -> int:
+    from lightstage.errors import LightstageError
+    from lightstage.pipelines.runner import run_pipeline
+    from lightstage.workdir import WorkDir
+
+    target: Path = args.target
+    config, capture = _run_target(args)
     work = args.work or (Path(config.work) if config.work else None)
     if work is None:
         raise LightstageError("no work directory: pass --work WORK or set work: in the config")

@@ -265,8 +265,8 @@ def _check_resumable(path: Path, ck: dict[str, Any], cfg: TrainConfig) -> None:
     if conflicts:
         raise LightstageError(
             f"{path}: cannot resume with a config different from the checkpoint's ({'; '.join(conflicts)}): "
-            "resume with the checkpoint's config (only optim.steps may grow, and evaluation, logging and "
-            f"checkpoint frequencies change), or delete {path.parent} to train from scratch"
+            "resume with the checkpoint's config (a resume may only raise optim.steps or change how often it "
+            f"evaluates, logs and checkpoints), or delete {path.parent} to train from scratch"
         )
 
 
