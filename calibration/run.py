@@ -28,6 +28,7 @@ from lightstage.calibration.observed_lights import observe_lights
 from lightstage.cameras import camera_center, scale_intrinsics
 from lightstage.capture.layout import Capture, open_capture
 from lightstage.errors import LightstageError
+from lightstage.executor import Executor
 from lightstage.ids import ViewId
 from lightstage.records.calibration import Calibration, ViewCalibration
 from lightstage.records.ground_truth import GroundTruth
@@ -213,9 +214,12 @@ def _sfm_calibration(
 
 
 def run_calibrate(
-    work: WorkDir, config: CalibrateConfig | None = None, client: Any = None, progress: bool = True
+    work: WorkDir,
+    config: CalibrateConfig | None = None,
+    executor: Executor | None = None,
+    progress: bool = True,
 ) -> dict[str, Any]:
-    """Calibrate the capture of `work` (see the module doc); returns a small summary. `client` is unused
+    """Calibrate the capture of `work` (see the module doc); returns a small summary. `executor` is unused
     (SfM is one process; pycolmap uses `config.num_threads` threads)."""
     from lightstage.calibration.export import write_colmap_model, write_transforms
     from lightstage.calibration.nominal import nominal_calibration

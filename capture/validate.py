@@ -30,6 +30,7 @@ from lightstage.capture.extra_files import unexpected_files_warning
 from lightstage.capture.layout import Capture, open_capture
 from lightstage.config import load, require
 from lightstage.errors import LightstageError
+from lightstage.executor import Executor, LoopExecutor
 
 # Every status a frame can get; only `ok` frames are usable.
 STATUSES = (
@@ -544,19 +545,20 @@ def scan_capture(
     workers: int | None = None,
     timeout_s: float = DEFAULT_TIMEOUT_S,
     progress: bool = True,
-    client: Any = None,
+    executor: Executor | None = None,
     command: Sequence[str] | None = None,
     reuse: dict[str, FrameRecord] | None = None,
 ) -> ValidationResult:
-    """Check every expected frame of an opened capture (writes nothing)."""
+    """Check every expected frame of an opened capture (writes nothing). In this process (threads for the
+    headers, decoder processes for `deep`), or with a parallel `executor` in chunks of frames, one task each."""
     t0 = time.perf_counter()
     items = capture_items(capture)
     expected = (capture.stage.width, capture.stage.height)
     kwargs = dict(deep=deep, saturation=capture.stage.saturation, timeout_s=timeout_s, command=command)
-    if client is None:
+    if executor is None or isinstance(executor, LoopExecutor):
         records = check_files(items, expected, workers=workers, progress=progress, reuse=reuse, **kwargs)
     else:
-        records = _check_on_dask(client, items, expected, progress, reuse, kwargs)
+        records = _check_in_chunks(executor, items, expected, progress, reuse, kwargs)
     result = ValidationResult(
         capture.root, deep, records, time.perf_counter() - t0, workers or default_workers(deep)
     )
@@ -566,8 +568,8 @@ def scan_capture(
     return result
 
 
-def _check_on_dask(
-    client: Any,
+def _check_in_chunks(
+    executor: Executor,
     items: list[tuple[str, Path, str]],
     expected: tuple[int, int],
     progress: bool,
@@ -575,42 +577,32 @@ def _check_on_dask(
     kwargs: dict[str, Any],
     chunk: int = 512,
 ) -> list[FrameRecord]:
-    """Submit chunks of frames as dask tasks in a bounded window; tasks return small record dicts."""
-    from distributed import as_completed
-    from tqdm import tqdm
-
-    chunks = [items[i : i + chunk] for i in range(0, len(items), chunk)]
-    window = 2 * max(1, len(client.scheduler_info().get("workers", {})) or 1)
-    out: dict[int, list[FrameRecord]] = {}
-    todo = deque(enumerate(chunks))
-    bar = tqdm(total=len(items), desc="validate", unit="frame", file=sys.stderr, disable=not progress)
-
-    def submit() -> Any:
-        k, part = todo.popleft()
-        sub_reuse = {i: reuse[i].to_dict() for i, _, _ in part if reuse and i in reuse}
-        return client.submit(_dask_task, k, part, expected, sub_reuse, kwargs, pure=False)
-
-    futures = as_completed([submit() for _ in range(min(window, len(todo)))])
-    with bar:
-        for fut in futures:
-            k, recs = fut.result()
-            out[k] = [FrameRecord.from_dict(r) for r in recs]
-            bar.update(len(recs))
-            if todo:
-                futures.add(submit())
-    return [r for k in range(len(chunks)) for r in out[k]]
+    """Chunks of frames as executor tasks (a bounded window, 2 per task slot); tasks return record dicts."""
+    jobs = []
+    for i in range(0, len(items), chunk):
+        part = items[i : i + chunk]
+        sub_reuse = {k: reuse[k].to_dict() for k, _, _ in part if reuse and k in reuse}
+        jobs.append((part, expected, sub_reuse, kwargs))
+    out = executor.map(
+        _check_chunk,
+        jobs,
+        desc="validate",
+        unit="frame",
+        weight=lambda job: len(job[0]),
+        window=2 * executor.slots(),
+        progress=progress,
+    )
+    return [FrameRecord.from_dict(r) for recs in out for r in recs]
 
 
-def _dask_task(
-    k: int,
-    items: list[tuple[str, Path, str]],
-    expected: tuple[int, int],
-    reuse: dict[str, dict[str, Any]],
-    kwargs: dict[str, Any],
-) -> tuple[int, list[dict[str, Any]]]:
+def _check_chunk(
+    job: tuple[list[tuple[str, Path, str]], tuple[int, int], dict[str, dict[str, Any]], dict[str, Any]],
+) -> list[dict[str, Any]]:
+    """Executor task: check one chunk of frames in the worker, one thread, one decoder process."""
+    items, expected, reuse, kwargs = job
     old = {i: FrameRecord.from_dict(d) for i, d in reuse.items()}
     recs = check_files(items, expected, workers=1, progress=False, reuse=old, **kwargs)
-    return k, [r.to_dict() for r in recs]
+    return [r.to_dict() for r in recs]
 
 
 def write_outputs(
@@ -700,7 +692,7 @@ class ValidateConfig:
 
 
 def run_validate(
-    work: Any, config: ValidateConfig, client: Any = None, progress: bool = True
+    work: Any, config: ValidateConfig, executor: Executor | None = None, progress: bool = True
 ) -> dict[str, Any]:
     """Pipeline stage: validate the capture named by WORK/capture.txt into WORK/manifest.json and
     WORK/reports/validate.json. A few bad frames are listed (later stages skip them); a LightstageError only
@@ -717,7 +709,7 @@ def run_validate(
         workers=config.workers,
         timeout_s=config.timeout_s,
         progress=progress,
-        client=client,
+        executor=executor,
         reuse=reuse,
     )
     report_path = work.report("validate")

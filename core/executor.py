@@ -65,8 +65,11 @@ class TaskFailure:
 
 
 def describe(exc: BaseException) -> str:
-    """One line for an exception: its type and the first line of its message."""
+    """One line for an exception: a LightstageError's own message (it names the file and the problem), else
+    the type and the first line of the message."""
     text = str(exc).strip().splitlines()
+    if isinstance(exc, LightstageError) and text:
+        return text[0]
     return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
 
 

@@ -15,6 +15,7 @@ import numpy as np
 from lightstage.atomic import write_json_atomic
 from lightstage.config import load, require
 from lightstage.errors import LightstageError
+from lightstage.executor import Executor
 from lightstage.ids import ViewId
 from lightstage.workdir import WorkDir
 
@@ -284,9 +285,11 @@ def _training_views(work: WorkDir, calib_views: list[ViewId]) -> list[ViewId]:
 
 
 def run_bounds(
-    work: WorkDir, config: BoundsConfig, client: Any = None, progress: bool = True
+    work: WorkDir, config: BoundsConfig, executor: Executor | None = None, progress: bool = True
 ) -> dict[str, Any]:
-    """Carve the visual hull of the training views' masks; write WORK/bounds.json and reports/bounds.json."""
+    """The bounds stage: carve the visual hull of the training views' masks; write WORK/bounds.json (and
+    bounds.png) and reports/bounds.json. One process (`executor` is unused); skipped when bounds.json was made
+    from the same calibration, masks and config (`force` redoes it)."""
     import cv2
 
     from lightstage.records.calibration import Calibration

@@ -2,7 +2,7 @@
 memory-mappable shards (one .npy of RAY_DTYPE each, blocks foreground | band | background) with a manifest
 (format version, dtype, counts per zone, sha256 per shard, normalisation); test frames as full images.
 
-Two phases, both parallel (dask with a client, else a local process pool): per training view, sample and
+Two phases, both parallel through an executor (lightstage.executor): per training view, sample and
 compute every frame's rays into a temporary chunk (zone blocks, shuffled); per shard, gather an evenly spread,
 interleaved share of every chunk's zone blocks and shuffle it. Memory per task is one chunk or one shard.
 """
@@ -23,6 +23,7 @@ import numpy as np
 from lightstage.atomic import atomic_path, write_json_atomic
 from lightstage.config import load, require, require_choice
 from lightstage.errors import LightstageError
+from lightstage.executor import Executor, local_executor
 from lightstage.ids import FrameId, ViewId
 from lightstage.records.shards import (
     COMPOSITION,
@@ -461,22 +462,9 @@ def write_test_image(task: TestTask) -> dict[str, Any]:
 
 
 # ---- driver ------------------------------------------------------------------------------------------------
-def _map(fn: Any, items: list[Any], client: Any, workers: int, progress: bool, desc: str) -> list[Any]:
-    """Run fn over items: dask (bounded windows) with a client, else a local process pool or serially."""
-    if client is not None:
-        from lightstage.pipelines.cluster import map_bounded
-
-        return map_bounded(client, fn, items, progress=progress, desc=desc)
-    from tqdm import tqdm
-
-    if workers <= 1 or len(items) <= 1:
-        return [fn(x) for x in tqdm(items, desc=desc, disable=not progress)]
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-
-    # spawn, not fork: forking a process that already runs threads (torch, dask, OpenMP) can deadlock the child
-    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        return list(tqdm(pool.map(fn, items), total=len(items), desc=desc, disable=not progress))
+def _map(fn: Any, items: list[Any], executor: Executor, progress: bool, desc: str) -> list[Any]:
+    """Run fn over items through the executor (bounded windows, item order)."""
+    return executor.map(fn, items, desc=desc, progress=progress)
 
 
 def _plan_shards(totals: np.ndarray, rays_per_shard: int) -> int:
@@ -493,10 +481,20 @@ def shard_zone_counts(totals: tuple[int, ...], S: int, s: int) -> tuple[int, int
 
 
 def run_shard(
-    work: WorkDir, config: ShardConfig, client: Any = None, progress: bool = True
+    work: WorkDir, config: ShardConfig, executor: Executor | None = None, progress: bool = True
 ) -> dict[str, Any]:
     """Write WORK/shards/{train/*.npy, test/*.npz, manifest.json} from the split, calibration, bounds and
-    preprocessed frames; computes bounds.json first when absent. Resumable; reports to reports/shard.json."""
+    preprocessed frames. Resumable; reports to reports/shard.json. bounds.json is the bounds stage's output
+    (the pipeline runs it first); called without one, this computes it first with the default BoundsConfig.
+    `executor` None: a local process pool of `config.workers` (0: min(cpu count, 4); 1: in this process)."""
+    if executor is not None:
+        return _write_shards(work, config, executor, progress)
+    with local_executor(config.workers or min(os.cpu_count() or 1, 4)) as own:  # the pool starts on first use
+        return _write_shards(work, config, own, progress)
+
+
+def _write_shards(work: WorkDir, config: ShardConfig, executor: Executor, progress: bool) -> dict[str, Any]:
+    """run_shard's work, through `executor`."""
     from lightstage.dataset.bounds import BoundsConfig, load_bounds, run_bounds
     from lightstage.records.calibration import Calibration
     from lightstage.records.split import load_split
@@ -506,15 +504,8 @@ def run_shard(
     manifest_path = root / MANIFEST
     split = load_split(work.split)
     calib = Calibration.load(work.calibration)
-    # bounds: computed when absent, recomputed (with the config they were made with) when their inputs changed
-    bounds_cfg = BoundsConfig()
-    if work.bounds.is_file():
-        try:
-            stored = json.loads(work.bounds.read_text()).get("config", {})
-            bounds_cfg = BoundsConfig.from_dict({k: v for k, v in stored.items() if k != "force"})
-        except (ValueError, LightstageError):
-            pass
-    run_bounds(work, bounds_cfg, client=client, progress=progress)
+    if not work.bounds.is_file():  # a standalone call; whether bounds are current is the runner's to decide
+        run_bounds(work, BoundsConfig(), executor, progress=progress)
     bounds = load_bounds(work.bounds)
     # what the shards depend on; the preprocess report changes whenever preprocess rewrote frames or masks
     depends = [work.split, work.calibration, work.bounds, work.report("preprocess")]
@@ -533,7 +524,6 @@ def run_shard(
         shutil.rmtree(root)  # outputs of other inputs (or forced): never mix them with this run's
     tmp_dir.mkdir(parents=True, exist_ok=True)
     write_json_atomic(plan_path, {"inputs_hash": inputs_hash})
-    workers = config.workers or min(os.cpu_count() or 1, 4)
     cfg_dict = asdict(config)
 
     def cam(view: ViewId) -> Any:
@@ -562,7 +552,7 @@ def run_shard(
             )
         )  # fmt: skip
     t_a = time.perf_counter()
-    metas = _map(write_view_chunk, view_tasks, client, workers, progress, "shard: sample views")
+    metas = _map(write_view_chunk, view_tasks, executor, progress, "shard: sample views")
     t_a = time.perf_counter() - t_a
     chunk_counts = tuple(tuple(int(x) for x in m["counts"]) for m in metas)
     totals = np.sum(np.array(chunk_counts, np.int64).reshape(-1, 3), axis=0)
@@ -578,7 +568,7 @@ def run_shard(
         for s in range(S)
     ]  # fmt: skip
     t_b = time.perf_counter()
-    records = _map(write_shard, shard_tasks, client, workers, progress, "shard: write shards")
+    records = _map(write_shard, shard_tasks, executor, progress, "shard: write shards")
     t_b = time.perf_counter() - t_b
     # test images
     test_tasks = []
@@ -595,7 +585,7 @@ def run_shard(
             )
         )  # fmt: skip
     t_c = time.perf_counter()
-    tests = _map(write_test_image, test_tasks, client, workers, progress, "shard: test images")
+    tests = _map(write_test_image, test_tasks, executor, progress, "shard: test images")
     t_c = time.perf_counter() - t_c
     write_test_index(root, tests)
     rays = int(sum(r["rays"] for r in records))

@@ -26,6 +26,7 @@ from lightstage.dataset.protocols import (
     resolve,
 )
 from lightstage.errors import LightstageError
+from lightstage.executor import Executor
 from lightstage.ids import FrameId
 from lightstage.records.split import parse_frame_id
 from lightstage.workdir import WorkDir
@@ -98,7 +99,7 @@ def rejected_frames(work: WorkDir) -> set[FrameId]:
 
 
 def run_split(
-    work: WorkDir, config: SplitConfig, client: Any = None, progress: bool = True
+    work: WorkDir, config: SplitConfig, executor: Executor | None = None, progress: bool = True
 ) -> dict[str, Any]:
     """Resolve the protocol against the work directory's stage, write WORK/split.json and reports/split.json."""
     t0 = time.perf_counter()

@@ -6,16 +6,17 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-STAGES = ("validate", "preprocess", "calibrate", "split", "shard", "train", "eval")
+# pipelines.stages.STAGE_ORDER, spelled out so `lightstage --help` need not import every stage (a test checks)
+STAGES = ("validate", "preprocess", "calibrate", "split", "bounds", "shard", "train", "eval")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add `run`, `demo` and `config`."""
     run = subparsers.add_parser(
         "run",
-        help="run the whole pipeline (validate .. eval) as resumable batch work on dask",
+        help="run the whole pipeline (validate .. eval) as resumable batch work (dask or in-process)",
         description=(
-            "Run validate -> preprocess -> calibrate -> split -> shard on dask, then train -> eval. "
+            "Run validate -> preprocess -> calibrate -> split -> bounds -> shard on dask, then train -> eval. "
             "Finished stages whose config and inputs are unchanged are skipped; a killed run resumes. "
             "Give either a pipeline config (CONFIG.yaml with capture: and work:) or CAPTURE --work WORK."
         ),

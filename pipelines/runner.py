@@ -1,13 +1,17 @@
-"""The stage runner: validate -> preprocess -> calibrate -> split -> shard as dask batch work, then train ->
-eval as the training step (in this process or under torchrun). Finished stages are skipped on a rerun when
-their record matches the current config and inputs; a changed config or changed upstream outputs reruns the
-stage (from a clean slate) and, through the fingerprints, everything downstream.
+"""The stage runner: validate -> preprocess -> calibrate -> split -> bounds -> shard as batch work through one
+executor (built once per run: a dask LocalCluster, an existing scheduler, or an in-process loop), then train ->
+eval as the training step (in this process or under torchrun).
+
+Whether a stage is up to date is decided here and only here (`decide`): a finished stage is skipped on a
+rerun when its record matches the current config, its inputs (the capture and its upstream stages' records
+and outputs) and its own outputs; a changed config or input reruns it from a clean slate and, through the
+fingerprints, everything downstream. A stage that could not produce every expected output is recorded as
+`incomplete` with what is missing, the run exits non-zero, and the next run calls it again to redo exactly
+that (stages resume: they skip the items they already wrote).
 """
 
 from __future__ import annotations
 
-import contextlib
-import inspect
 import json
 import os
 import subprocess
@@ -19,13 +23,16 @@ from pathlib import Path
 from typing import Any
 
 from lightstage.atomic import write_json_atomic
-from lightstage.errors import LightstageError
+from lightstage.errors import EnvironmentFault, LightstageError, StageIncomplete
+from lightstage.executor import Executor, LoopExecutor
 from lightstage.pipelines import records
+from lightstage.pipelines.cluster import open_executor
 from lightstage.pipelines.config import PipelineConfig, config_as_data, config_hash, validate_pipeline_config
-from lightstage.pipelines.stages import BATCH_STAGES, SPECS, STAGE_ORDER, StageImpl
+from lightstage.pipelines.stages import SPECS, STAGE_ORDER, StageImpl, upstream
 from lightstage.workdir import WorkDir
 
 MAX_SUMMARY_CHARS = 20_000
+MAX_MISSING_LISTED = 50
 
 
 @dataclass
@@ -59,15 +66,57 @@ def select_stages(
     return list(STAGE_ORDER[start:stop]), bool(from_stage)
 
 
+@dataclass(frozen=True)
+class Decision:
+    """Whether to run a stage, why, and whether its previous outputs must go first."""
+
+    run: bool
+    reason: str
+    remove_outputs: bool = False
+
+
+def decide(
+    rec: dict[str, Any] | None,
+    config_hash: str,
+    input_key: str,
+    outputs_digest: Callable[[], str],
+    *,
+    forced: bool = False,
+    clean: bool = False,
+    resumes: bool = False,
+) -> Decision:
+    """The one up-to-date decision. `rec`: the stage's last pipeline record; `outputs_digest()`: its outputs'
+    fingerprint now. Outputs made with another config or other inputs are removed before it runs again, and so
+    are changed outputs of a stage that does not resume item by item; a stage that did not finish (killed,
+    failed, incomplete) is called again on what it left, which it resumes."""
+    if rec is None:
+        return Decision(True, "no finished record", forced and clean)
+    if rec.get("config_hash") != config_hash:
+        return Decision(True, "config changed", True)
+    if rec.get("input_key") != input_key:
+        return Decision(True, "inputs changed", True)
+    if forced:
+        return Decision(True, "forced (--from/--only)", clean)
+    status = rec.get("status")
+    if status == "done":
+        if rec.get("outputs", {}).get("digest") == outputs_digest():
+            return Decision(False, "up to date")
+        return Decision(True, "outputs changed since the last run", not resumes)
+    if status == "incomplete":
+        return Decision(True, f"retrying {rec.get('missing_count', 0)} missing output(s)")
+    return Decision(True, "previous attempt did not finish")
+
+
 class PipelineRunner:
-    """Runs the selected stages of one work directory; dask is started only when a batch stage must run."""
+    """Runs the selected stages of one work directory; the executor is built when a batch stage must run
+    (or given), closed before the training step."""
 
     def __init__(
         self,
         work: WorkDir,
         config: PipelineConfig,
         *,
-        client: Any = None,
+        executor: Executor | None = None,
         progress: bool = True,
         log: Callable[[str], None] | None = None,
     ) -> None:
@@ -75,8 +124,8 @@ class PipelineRunner:
         self.config = config
         self.progress = progress
         self.log = log or (lambda msg: print(msg, flush=True))
-        self._client = client
-        self._own_client: contextlib.ExitStack | None = None
+        self._executor = executor
+        self._own_executor = False
         self._fp_cache: dict[str, records.Fingerprint] = {}
         self._capture_fp: dict[str, Any] | None = None
 
@@ -93,31 +142,31 @@ class PipelineRunner:
         return self._fp_cache[name]
 
     def inputs_of(self, stage: str) -> dict[str, Any]:
-        """The capture and every upstream stage's record config hash and current outputs."""
-        upstream: dict[str, Any] = {}
-        for name in STAGE_ORDER[: STAGE_ORDER.index(stage)]:
+        """The capture, and the record config hash and current outputs of every stage `stage` reads from
+        (its inputs in the stage table and theirs, transitively)."""
+        ups: dict[str, Any] = {}
+        for name in upstream(stage):
             rec = records.read_record(self.work, name)
-            upstream[name] = {
+            ups[name] = {
                 "config_hash": rec.get("config_hash") if rec else None,
                 "outputs": self.outputs_fingerprint(name).digest,
             }
-        return {"capture": self.capture_fingerprint(), "upstream": upstream}
+        return {"capture": self.capture_fingerprint(), "upstream": ups}
 
     # ---- execution ----
-    def client(self) -> Any:
-        """The dask client (started on first use); None when `cluster.workers` is 0 (run in this process)."""
-        if self._client is None and (self.config.cluster.scheduler or self.config.cluster.workers > 0):
-            from lightstage.pipelines.cluster import dask_client
+    def executor(self) -> Executor:
+        """The run's executor for batch stages (built on first use from `cluster:`, then reused)."""
+        if self._executor is None:
+            self._executor = open_executor(self.config.cluster)
+            self._own_executor = True
+        return self._executor
 
-            self._own_client = contextlib.ExitStack()
-            self._client = self._own_client.enter_context(dask_client(self.config.cluster))
-        return self._client
-
-    def close_client(self) -> None:
-        if self._own_client is not None:
-            self._own_client.close()
-            self._own_client = None
-            self._client = None
+    def close_executor(self) -> None:
+        if self._own_executor and self._executor is not None:
+            self._executor.close()
+        if self._own_executor:
+            self._executor = None
+            self._own_executor = False
 
     def run(
         self,
@@ -141,12 +190,12 @@ class PipelineRunner:
         results: list[StageResult] = []
         try:
             for i, name in enumerate(selected, 1):
-                if name not in BATCH_STAGES:
-                    self.close_client()  # the training step gets the machine to itself
+                if not SPECS[name].batch:
+                    self.close_executor()  # the training step gets the machine to itself
                 result = self._run_stage(impls[name], configs[name], forced, clean, f"[{i}/{len(selected)}]")
                 results.append(result)
         finally:
-            self.close_client()
+            self.close_executor()
         return results
 
     def _run_stage(
@@ -162,92 +211,94 @@ class PipelineRunner:
         inputs = self.inputs_of(name)
         input_key = _digest(inputs)
         rec = records.read_record(self.work, name)
-        stale = rec is not None and (rec.get("config_hash") != chash or rec.get("input_key") != input_key)
-        if rec and rec.get("status") == "done" and not stale and not forced:
-            if rec.get("outputs", {}).get("digest") == self.outputs_fingerprint(name).digest:
-                self.log(f"{tag} {name}: up to date (skipped)")
-                return StageResult(name, "skipped", "up to date", 0.0, rec.get("summary", {}))
-            reason = "outputs changed since the last run"
-        elif forced:
-            reason = "forced (--from/--only)"
-        elif rec is None:
-            reason = "no finished record"
-        elif stale:
-            reason = "config changed" if rec.get("config_hash") != chash else "inputs changed"
-        else:
-            reason = "previous attempt did not finish"
-        if stale or (forced and clean):
+        d = decide(
+            rec,
+            chash,
+            input_key,
+            lambda: self.outputs_fingerprint(name).digest,
+            forced=forced,
+            clean=clean,
+            resumes=impl.spec.resumes,
+        )
+        if not d.run:
+            self.log(f"{tag} {name}: up to date (skipped)")
+            return StageResult(name, "skipped", d.reason, 0.0, (rec or {}).get("summary", {}))
+        reason = d.reason
+        if d.remove_outputs:
             records.invalidate(self.work, name, impl.spec.outputs(self.work))
             reason += "; previous outputs removed"
         self.log(f"{tag} {name}: running ({reason})")
         self._fp_cache.pop(name, None)
+        base = {"stage": name, "implementation": impl.where, "config_hash": chash, "input_key": input_key}
         started = records.now_iso()
         t0 = time.perf_counter()
         try:
-            summary = self._call(impl, config, name in BATCH_STAGES)
+            summary = self._call(impl, config)
+            missing = _missing(self.work, impl, summary)
+        except StageIncomplete as e:
+            summary, missing = e.summary, e.missing or [str(e)]
         except BaseException as e:
-            seconds = time.perf_counter() - t0
             self._fp_cache.pop(name, None)
             if not isinstance(e, KeyboardInterrupt | SystemExit):
                 records.write_record(
-                    self.work,
-                    name,
-                    {
-                        "stage": name,
-                        "status": "failed",
-                        "implementation": impl.where,
-                        "config_hash": chash,
-                        "input_key": input_key,
-                        "started": started,
-                        "finished": records.now_iso(),
-                        "seconds": round(seconds, 3),
-                        "error": f"{type(e).__name__}: {e}",
-                    },
+                    self.work, name, {**base, **_timing(started, t0), "status": "failed", "error": _line(e)}
                 )
+            if isinstance(e, EnvironmentFault):
+                raise EnvironmentFault(f"stage {name} failed: {e}") from e
             if isinstance(e, LightstageError):
                 raise LightstageError(f"stage {name} failed: {e}") from e
             raise
-        seconds = time.perf_counter() - t0
         self._fp_cache.pop(name, None)
-        outputs = self.outputs_fingerprint(name)
         summary = _small(summary)
         report = records.read_report(records.report_path(self.work, name))
+        if missing:
+            records.write_record(
+                self.work,
+                name,
+                {
+                    **base,
+                    **_timing(started, t0),
+                    "status": "incomplete",
+                    "missing_count": len(missing),
+                    "missing": missing[:MAX_MISSING_LISTED],
+                    "summary": summary,
+                    **records.summarise_report(report, summary),
+                },
+            )
+            shown = ", ".join(missing[:3]) + (", ..." if len(missing) > 3 else "")
+            raise StageIncomplete(
+                f"stage {name} incomplete: {len(missing)} expected output(s) missing ({shown}); it is not "
+                f"recorded as done, the next run retries them (see {records.report_path(self.work, name)})",
+                missing,
+                summary,
+            )
         if report is None:
             self.log(
                 f"warning: {name} wrote no {records.report_path(self.work, name)}; the pipeline record stands alone"
             )
+        timing = _timing(started, t0)
         record = {
-            "stage": name,
+            **base,
             "status": "done",
-            "implementation": impl.where,
-            "config_hash": chash,
             "config": config_as_data(config),
             "inputs": inputs,
-            "input_key": input_key,
-            "outputs": outputs.to_dict(),
-            "started": started,
-            "finished": records.now_iso(),
-            "seconds": round(seconds, 3),
+            "outputs": self.outputs_fingerprint(name).to_dict(),
+            **timing,
             "summary": summary,
             **records.summarise_report(report, summary),
         }
         records.write_record(self.work, name, record)
         errors = record.get("errors", 0)
         extra = f", {errors} error(s) recorded in {records.report_path(self.work, name)}" if errors else ""
-        self.log(f"{tag} {name}: done in {seconds:.1f} s{extra}")
-        return StageResult(name, "ran", reason, seconds, summary)
+        self.log(f"{tag} {name}: done in {timing['seconds']:.1f} s{extra}")
+        return StageResult(name, "ran", reason, timing["seconds"], summary)
 
-    def _call(self, impl: StageImpl, config: Any, batch: bool) -> dict[str, Any]:
+    def _call(self, impl: StageImpl, config: Any) -> dict[str, Any]:
+        """Run the stage with the stage API signature: run(work, config, executor=..., progress=...)."""
         if impl.spec.name == "train" and self.config.launch.launcher == "torchrun":
             return self._train_torchrun(impl)
-        client = self.client() if batch else None
-        kwargs: dict[str, Any] = {}
-        params = inspect.signature(impl.run).parameters
-        if "client" in params:
-            kwargs["client"] = client
-        if "progress" in params:
-            kwargs["progress"] = self.progress
-        out = impl.run(self.work, config, **kwargs)
+        executor = self.executor() if impl.spec.batch else LoopExecutor()
+        out = impl.run(self.work, config, executor=executor, progress=self.progress)
         return out if isinstance(out, dict) else {"result": repr(out)}
 
     def _train_torchrun(self, impl: StageImpl) -> dict[str, Any]:
@@ -290,11 +341,12 @@ def run_pipeline(
     only: str | None = None,
     to_stage: str | None = None,
     clean: bool = False,
-    client: Any = None,
+    executor: Executor | None = None,
     progress: bool = True,
     log: Callable[[str], None] | None = None,
 ) -> list[StageResult]:
-    """Run the pipeline on `work` (writing WORK/capture.txt first when `capture` is given)."""
+    """Run the pipeline on `work` (writing WORK/capture.txt first when `capture` is given). `executor`: run
+    the batch stages on it (default: one built from the config's `cluster:` for this run)."""
     capture = capture or config.capture
     validate_pipeline_config(config, capture if capture is not None else work.capture_path())
     work.root.mkdir(parents=True, exist_ok=True)
@@ -302,7 +354,7 @@ def run_pipeline(
         work.link_capture(capture)
     else:
         work.capture_path()
-    runner = PipelineRunner(work, config, client=client, progress=progress, log=log)
+    runner = PipelineRunner(work, config, executor=executor, progress=progress, log=log)
     return runner.run(from_stage=from_stage, only=only, clean=clean, to_stage=to_stage)
 
 
@@ -310,6 +362,24 @@ def _digest(obj: Any) -> str:
     import hashlib
 
     return hashlib.sha256(json.dumps(obj, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _missing(work: WorkDir, impl: StageImpl, summary: Any) -> list[str]:
+    """Expected outputs that a stage which returned did not produce: the paths of the stage table's `expects`
+    that do not exist, and what the stage itself lists under `missing` in its summary."""
+    out = [str(p) for p in impl.spec.expects(work) if not p.exists()]
+    listed = summary.get("missing") if isinstance(summary, dict) else None
+    if isinstance(listed, list | tuple):
+        out += [str(m) for m in listed]
+    return out
+
+
+def _timing(started: str, t0: float) -> dict[str, Any]:
+    return {"started": started, "finished": records.now_iso(), "seconds": round(time.perf_counter() - t0, 3)}
+
+
+def _line(e: BaseException) -> str:
+    return f"{type(e).__name__}: {e}"
 
 
 def _small(summary: Any) -> dict[str, Any]:
@@ -330,11 +400,7 @@ def _train_rank_main(work_root: str, spec_file: str) -> int:
     impl = resolve_stage("train", spec.get("entry"))
     config = impl.make_config(spec.get("section") or {})
     rank = int(os.environ.get("RANK", "0"))
-    kwargs: dict[str, Any] = {}
-    params = inspect.signature(impl.run).parameters
-    if "progress" in params:
-        kwargs["progress"] = rank == 0
-    impl.run(WorkDir.at(work_root), config, **kwargs)
+    impl.run(WorkDir.at(work_root), config, executor=LoopExecutor(), progress=rank == 0)
     return 0
 
 

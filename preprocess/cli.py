@@ -70,11 +70,10 @@ def _preprocess(args: argparse.Namespace) -> int:
     work.link_capture(capture.root)
     progress = not args.no_progress
     if args.workers or args.scheduler:
-        from lightstage.pipelines.cluster import ClusterSettings, dask_client
+        from lightstage.executor import dask_executor
 
-        settings = ClusterSettings(scheduler=args.scheduler, workers=max(args.workers, 1), dashboard="")
-        with dask_client(settings, verbose=progress) as client:
-            summary = run_preprocess(work, config, client=client, progress=progress)
+        with dask_executor(args.scheduler, max(args.workers, 1), dashboard="", verbose=progress) as executor:
+            summary = run_preprocess(work, config, executor, progress=progress)
     else:
         set_library_threads(args.threads or os.cpu_count() or 1)
         summary = run_preprocess(work, config, progress=progress)

@@ -21,6 +21,7 @@ import numpy as np
 
 from lightstage.atomic import write_json_atomic
 from lightstage.errors import LightstageError
+from lightstage.executor import Executor, LoopExecutor
 
 if TYPE_CHECKING:
     from lightstage.capture.layout import Capture
@@ -212,14 +213,6 @@ def measure_probe_view(job: ProbeViewJob) -> ProbeViewRecord:
     return rec
 
 
-def run_probe_view(job: ProbeViewJob) -> ProbeViewRecord:
-    """Worker entry point: one library thread, then measure."""
-    from lightstage.threads import set_library_threads
-
-    set_library_threads(1)
-    return measure_probe_view(job)
-
-
 def load_view_record(path: Path) -> ProbeViewRecord | None:
     """A view's record, or None when absent, unreadable or from another version (then it is measured again)."""
     try:
@@ -256,12 +249,10 @@ def probe_jobs(work: WorkDir, capture: Capture, info: ProbeInfo) -> list[ProbeVi
 
 
 def run_probe(
-    work: WorkDir, capture: Capture, client: Any = None, progress: bool = True
+    work: WorkDir, capture: Capture, executor: Executor | None = None, progress: bool = True
 ) -> dict[str, Any] | None:
     """Measure every view of the capture's probe (None when it has none); resumes finished views. Returns a
     summary for the preprocess report."""
-    from tqdm import tqdm
-
     from lightstage.capture.probe import load_probe_info
 
     info = load_probe_info(capture.root)
@@ -277,22 +268,8 @@ def run_probe(
             records.append(done)
         else:
             todo.append(job)
-    bar = tqdm(total=len(todo), desc="probe views", unit="view", disable=not progress, dynamic_ncols=True)
-    try:
-        if client is None:
-            for job in todo:
-                records.append(measure_probe_view(job))
-                bar.update()
-        else:
-            from distributed import as_completed
-
-            futures = client.map(run_probe_view, todo, pure=False)
-            for f in as_completed(futures):
-                records.append(f.result())
-                bar.update()
-                f.release()
-    finally:
-        bar.close()
+    executor = executor or LoopExecutor()  # its workers have one library thread each
+    records += executor.map(measure_probe_view, todo, desc="probe views", unit="view", progress=progress)
     errors = [r.error for r in records if r.error]
     return {
         "positions": list(info.positions),

@@ -20,6 +20,7 @@ from typing import Any
 from lightstage.atomic import write_json_atomic
 from lightstage.capture.layout import open_capture
 from lightstage.errors import LightstageError
+from lightstage.executor import Executor, LoopExecutor, TaskFailure
 from lightstage.ids import FrameId, ViewId
 from lightstage.preprocess.config import PreprocessConfig
 from lightstage.preprocess.frame_task import process_chunk
@@ -29,7 +30,6 @@ from lightstage.preprocess.jobs import (
     ViewJob,
     ViewRecord,
     in_dask_worker,
-    reason_of,
     split_lights,
 )
 from lightstage.preprocess.report import add_group_flags, build_report, write_previews
@@ -43,7 +43,7 @@ __all__ = ["PreprocessConfig", "run_preprocess", "process_chunk", "process_view"
 
 # ---- orchestration --------------------------------------------------------------------------------------------
 def run_preprocess(
-    work: WorkDir, config: PreprocessConfig, client: Any = None, progress: bool = True
+    work: WorkDir, config: PreprocessConfig, executor: Executor | None = None, progress: bool = True
 ) -> dict[str, Any]:
     """Preprocess the capture named in WORK/capture.txt into WORK/preprocess; returns a summary dict."""
     t0 = time.perf_counter()
@@ -109,10 +109,8 @@ def run_preprocess(
     errors: list[str] = []
     chunk_results: list[ChunkRecord] = []
     t_frames = time.perf_counter()
-    if client is None:
-        _run_local(todo, chunk_jobs, records, chunk_results, errors, progress)
-    else:
-        _run_dask(client, todo, chunk_jobs, records, chunk_results, errors, config, progress)
+    executor = executor or LoopExecutor()
+    _run_views(executor, todo, chunk_jobs, records, chunk_results, errors, config, progress)
     t_views = time.perf_counter() - t_frames
     add_group_flags(work, records, config)
     t_prev = time.perf_counter()
@@ -125,7 +123,7 @@ def run_preprocess(
     t_previews = time.perf_counter() - t_prev
     from lightstage.preprocess.probe import run_probe
 
-    probe = run_probe(work, capture, client, progress)
+    probe = run_probe(work, capture, executor, progress)
     if probe is not None:
         report["probe"] = probe
     report["timings"] = {
@@ -160,40 +158,8 @@ def run_preprocess(
     return summary
 
 
-def _bar(total: int, desc: str, enabled: bool) -> Any:
-    from tqdm import tqdm
-
-    return tqdm(total=total, desc=desc, unit="frame", disable=not enabled, dynamic_ncols=True)
-
-
-def _run_local(
-    todo: list[ViewJob],
-    chunk_jobs: dict[ViewId, list[ChunkJob]],
-    records: dict[ViewId, ViewRecord],
-    chunk_results: list[ChunkRecord],
-    errors: list[str],
-    progress: bool,
-) -> None:
-    bar = _bar(sum(len(j.lights) for j in todo), "preprocess", progress)
-    try:
-        for job in todo:
-            view = ViewId(job.group, job.camera)
-            mine = []
-            try:
-                for cj in chunk_jobs[view]:
-                    mine.append(process_chunk(cj))
-                    bar.update(len(cj.lights))
-                chunk_results.extend(mine)
-                rec = process_view(job, mine)
-                records[view] = rec
-            except (LightstageError, OSError) as e:
-                errors.append(f"{view}: {reason_of(e)}")
-    finally:
-        bar.close()
-
-
-def _run_dask(
-    client: Any,
+def _run_views(
+    executor: Executor,
     todo: list[ViewJob],
     chunk_jobs: dict[ViewId, list[ChunkJob]],
     records: dict[ViewId, ViewRecord],
@@ -202,70 +168,32 @@ def _run_dask(
     config: PreprocessConfig,
     progress: bool,
 ) -> None:
-    """Chunks as tasks; each view's merge task depends on its chunks. Views are admitted in a bounded
-    window so partial files (and scheduler state) stay bounded."""
-    import uuid
-
-    from distributed import as_completed
-
-    from lightstage.pipelines.cluster import total_threads
-
-    slots = total_threads(client)
-    window_chunks = config.window or 4 * slots
-    prefix = f"preprocess-{uuid.uuid4().hex[:8]}"
-    bar = _bar(sum(len(j.lights) for j in todo), "preprocess", progress)
-    pending = iter(todo)
-    queue = as_completed()
-    in_flight: dict[str, tuple[ViewJob, list[Any]]] = {}
-    chunks_in_flight = 0
-
-    def admit() -> bool:
-        nonlocal chunks_in_flight
-        job = next(pending, None)
-        if job is None:
-            return False
+    """Every unfinished view through the executor: its chunks as tasks, then its view task on their records.
+    Views are admitted in a bounded window (`config.window` tasks, default 4 per task slot) so partial files
+    stay bounded; a view that still fails after the executor's retries is an error, and the batch goes on."""
+    groups = [(job, chunk_jobs[ViewId(job.group, job.camera)]) for job in todo]
+    done = executor.map_groups(
+        _view_after_chunks,
+        process_chunk,
+        groups,
+        desc="preprocess",
+        unit="frame",
+        weight=lambda job: len(job.lights),
+        window=config.window or None,
+        progress=progress,
+        errors="return",
+    )
+    for job, rec in zip(todo, done, strict=True):
         view = ViewId(job.group, job.camera)
-        tag = f"{prefix}-{job.group}-{job.camera}"
-        futs = [
-            client.submit(process_chunk, cj, key=f"{tag}-chunk{cj.index}", retries=1, pure=False)
-            for cj in chunk_jobs[view]
-        ]
-        vf = client.submit(_view_after_chunks, job, futs, key=f"{tag}-view", retries=1, pure=False)
-        in_flight[vf.key] = (job, futs)
-        chunks_in_flight += len(futs)
-        queue.add(vf)
-        return True
-
-    while chunks_in_flight < window_chunks and admit():
-        pass
-    try:
-        for vf in queue:
-            job, futs = in_flight.pop(vf.key)
-            chunks_in_flight -= len(futs)
-            view = ViewId(job.group, job.camera)
-            try:
-                rec = vf.result()
-                records[view] = rec
-                chunk_results.extend(ChunkRecord(**c) for c in rec.chunks)
-            except Exception as e:  # noqa: BLE001 - one failed view must not stop the batch
-                errors.append(f"{view}: {reason_of(e)}")
-            for f in futs:
-                f.release()
-            vf.release()
-            bar.update(len(job.lights))
-            while chunks_in_flight < window_chunks and admit():
-                pass
-    except BaseException:
-        for job_futs in in_flight.values():
-            for f in job_futs[1]:
-                f.cancel()
-        raise
-    finally:
-        bar.close()
+        if isinstance(rec, TaskFailure):
+            errors.append(f"{view}: {rec.error}")
+            continue
+        records[view] = rec
+        chunk_results.extend(ChunkRecord(**c) for c in rec.chunks)
 
 
 def _view_after_chunks(job: ViewJob, chunk_records: list[ChunkRecord]) -> ViewRecord:
-    """Dask entry point: runs once the view's chunk tasks are done (their records are the argument)."""
+    """Executor task: runs once the view's chunk tasks are done (their records are the argument)."""
     if in_dask_worker():
         from lightstage.threads import set_library_threads
 

@@ -8,11 +8,9 @@ stage; only with --groups/--cameras/--lights subsets, for benchmarks). Determini
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -32,6 +30,7 @@ from lightstage.capture.presets import PAPER_RESOLUTION, make_stage
 from lightstage.capture.probe import save_probe_info
 from lightstage.capture.stage import Stage
 from lightstage.errors import LightstageError
+from lightstage.executor import Executor, local_executor
 from lightstage.ids import ViewId
 from lightstage.records.calibration import Calibration, ViewCalibration
 from lightstage.records.ground_truth import CLEAN_TEMPLATE, FOLDER, GroundTruth
@@ -41,9 +40,8 @@ from lightstage.simulator.probe import (
     probe_ground_truth,
     probe_jobs,
     render_probe_view,
-    run_probe_job,
 )
-from lightstage.simulator.render import ViewJob, render_view, run_view_job
+from lightstage.simulator.render import ViewJob, render_view
 from lightstage.simulator.scene import SimScene, default_scene, led_intensities
 from lightstage.simulator.shading import cast_view, render_hits
 
@@ -236,10 +234,10 @@ def simulate_capture(
         for gi in gsel
         for ci in csel
     ]
-    with _process_pool(_pool_size(workers, len(jobs))) as pool:
-        records = _run_jobs(jobs, pool, progress)
+    with local_executor(_pool_size(workers, len(jobs))) as executor:
+        records = _run_jobs(jobs, executor, progress)
         if probe:  # the probe's views reuse the pool (spawning workers costs ~1 s)
-            _simulate_probe(out, stage, truth, scene, seed, preset, full, lsel, pool, progress)
+            _simulate_probe(out, stage, truth, scene, seed, preset, full, lsel, executor, progress)
     nuisances = {
         "bulbs_in_view": [
             {"group": r.group, "camera": r.camera, "light": lt, "pixels": n}
@@ -269,7 +267,7 @@ def _simulate_probe(
     preset: str,
     full: Stage,
     lsel: list[int],
-    pool: ProcessPoolExecutor | None,
+    executor: Executor,
     progress: bool,
     settings: ProbeSettings | None = None,
 ) -> None:
@@ -288,7 +286,7 @@ def _simulate_probe(
         settings,
         attributes={"lightstage_simulator": f"{preset} seed {seed} probe"},
     )
-    records = _run_jobs(jobs, pool, progress, render_probe_view, run_probe_job, "simulate probe")
+    records = _run_jobs(jobs, executor, progress, render_probe_view, "simulate probe")
     save_probe_info(info, out)
     write_json_atomic(
         GroundTruth.of(out).probe, probe_ground_truth(truth, settings, list(info.positions), records)
@@ -313,39 +311,15 @@ def _pool_size(workers: int | None, num_jobs: int) -> int:
     return n
 
 
-def _process_pool(n: int) -> contextlib.AbstractContextManager[ProcessPoolExecutor | None]:
-    """A spawn process pool of `n` workers, or None (serial) for n = 1; shared by the capture and the probe."""
-    import multiprocessing as mp
-
-    if n <= 1:
-        return contextlib.nullcontext(None)
-    return ProcessPoolExecutor(n, mp_context=mp.get_context("spawn"))
-
-
 def _run_jobs(
     jobs: list[Any],
-    pool: ProcessPoolExecutor | None,
+    executor: Executor,
     progress: bool,
     render: Any = render_view,
-    entry: Any = run_view_job,
     desc: str = "simulate views",
 ) -> list[Any]:
-    """Render views serially (`render`, pool None) or in `pool` (`entry`: sets library threads); results in
-    job order."""
-    from tqdm import tqdm
-
-    bar = tqdm(total=len(jobs), desc=desc, unit="view", disable=not progress)
-    records: list[Any] = []
-    if pool is None:
-        for job in jobs:
-            records.append(render(job))
-            bar.update()
-    else:
-        for rec in pool.map(entry, jobs, chunksize=1):
-            records.append(rec)
-            bar.update()
-    bar.close()
-    return records
+    """Render views through the executor (its pool workers have one library thread each); job order."""
+    return executor.map(render, jobs, desc=desc, unit="view", progress=progress)
 
 
 def _write_ground_truth(

@@ -106,12 +106,14 @@ def test_rerun_skips_and_parameter_change_reruns_downstream(tmp_path: Path, capt
     again = run_pipeline(work, fake_config(), progress=False, log=lambda m: None)
     assert set(statuses(again).values()) == {"skipped"}
 
+    # downstream of calibrate reruns; split does not read the calibration (stage table inputs) and is kept
     changed = run_pipeline(work, fake_config(calibrate={"scale": 3}), progress=False, log=lambda m: None)
     assert statuses(changed) == {
         "validate": "skipped",
         "preprocess": "skipped",
         "calibrate": "ran",
-        "split": "ran",
+        "split": "skipped",
+        "bounds": "ran",
         "shard": "ran",
         "train": "ran",
         "eval": "ran",
@@ -158,28 +160,28 @@ def test_cli_run_capture_and_work(tmp_path: Path, capture: Path, monkeypatch) ->
 def test_worker_killed_mid_run_completes_with_identical_outputs(
     tmp_path: Path, capture: Path, kill_process_when
 ) -> None:
-    from lightstage.pipelines.cluster import ClusterSettings, dask_client
+    from lightstage.executor import dask_executor
 
     ref = WorkDir.at(tmp_path / "ref")
     run_pipeline(ref, fake_config(), capture=capture, progress=False, log=lambda m: None)
 
     work = WorkDir.at(tmp_path / "work")
     frames = work.root / "preprocess" / "frames"
-    with dask_client(ClusterSettings(workers=2, dashboard=""), verbose=False) as client:
-        pids = sorted(client.run(os.getpid).values())
+    with dask_executor(workers=2, dashboard="", verbose=False) as executor:
+        pids = executor.worker_pids()
         with kill_process_when(pids[0], lambda: len(list(frames.glob("*.txt"))) >= 2) as killer:
             res = run_pipeline(
                 work,
                 fake_config(preprocess={"delay": 0.4}),
                 capture=capture,
-                client=client,
+                executor=executor,
                 progress=False,
                 log=lambda m: None,
             )
         assert killer.killed and set(statuses(res).values()) == {"ran"}
-        after = sorted(client.run(os.getpid).values())
+        after = executor.worker_pids()
         # every worker, the restarted one included, got lightstage's malloc settings before it started
-        malloc = client.run(
+        malloc = executor.client.run(
             lambda: (os.environ.get("MALLOC_MMAP_THRESHOLD_"), os.environ.get("MALLOC_TRIM_THRESHOLD_"))
         )
     assert pids[0] not in after  # the worker really died (the nanny started a new one)

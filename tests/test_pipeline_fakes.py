@@ -17,10 +17,10 @@ from typing import Any
 
 from lightstage.atomic import write_json_atomic, write_text_atomic
 from lightstage.errors import LightstageError
-from lightstage.pipelines.cluster import TaskFailure, map_bounded
+from lightstage.executor import Executor, LoopExecutor, TaskFailure
 from lightstage.workdir import WorkDir
 
-STAGES = ("validate", "preprocess", "calibrate", "split", "shard", "train", "eval")
+STAGES = ("validate", "preprocess", "calibrate", "split", "bounds", "shard", "train", "eval")
 
 
 def entry_points() -> dict[str, str]:
@@ -65,7 +65,9 @@ def _report(work: WorkDir, stage: str, **data: Any) -> dict[str, Any]:
     return summary
 
 
-def run_validate(work: WorkDir, config: FakeConfig, client: Any = None, progress: bool = True) -> dict:
+def run_validate(
+    work: WorkDir, config: FakeConfig, executor: Executor | None = None, progress: bool = True
+) -> dict:
     frames = sorted(p.name for p in (_capture(work) / "frames").glob("*.txt"))
     bad = [f for f in frames if not (_capture(work) / "frames" / f).read_text().strip().isdigit()]
     write_json_atomic(work.manifest, {"frames": frames, "bad": bad})
@@ -84,7 +86,9 @@ def _preprocess_one(item: tuple[str, str, int, float]) -> dict[str, Any]:
     return {"frame": Path(src).name, "status": "done", "pid": os.getpid()}
 
 
-def run_preprocess(work: WorkDir, config: FakeConfig, client: Any = None, progress: bool = True) -> dict:
+def run_preprocess(
+    work: WorkDir, config: FakeConfig, executor: Executor | None = None, progress: bool = True
+) -> dict:
     manifest = json.loads(work.manifest.read_text())
     out = work.preprocess_dir / "frames"
     out.mkdir(parents=True, exist_ok=True)
@@ -92,7 +96,8 @@ def run_preprocess(work: WorkDir, config: FakeConfig, client: Any = None, progre
         (str(_capture(work) / "frames" / f), str(out / f), config.scale, config.delay)
         for f in manifest["frames"]
     ]
-    recs = map_bounded(client, _preprocess_one, items, window=4, progress=progress, errors="return")
+    executor = executor or LoopExecutor()
+    recs = executor.map(_preprocess_one, items, window=4, progress=progress, errors="return")
     errors = [r.error if isinstance(r, TaskFailure) else r for r in recs if not r or r["status"] == "error"]
     counts = {s: sum(1 for r in recs if r and r["status"] == s) for s in ("done", "skipped")}
     return _report(
@@ -108,13 +113,17 @@ def _done_values(folder: Path) -> list[int]:
     return [int(p.read_text()) for p in sorted(folder.glob("*.txt"))]
 
 
-def run_calibrate(work: WorkDir, config: FakeConfig, client: Any = None, progress: bool = True) -> dict:
+def run_calibrate(
+    work: WorkDir, config: FakeConfig, executor: Executor | None = None, progress: bool = True
+) -> dict:
     total = sum(_done_values(work.preprocess_dir / "frames")) * config.scale
     write_json_atomic(work.calibration, {"total": total})
     return _report(work, "calibrate", counts={"total": total})
 
 
-def run_split(work: WorkDir, config: FakeConfig, client: Any = None, progress: bool = True) -> dict:
+def run_split(
+    work: WorkDir, config: FakeConfig, executor: Executor | None = None, progress: bool = True
+) -> dict:
     names = sorted(p.name for p in (work.preprocess_dir / "frames").glob("*.txt"))
     split = {"train": names[::2], "test": names[1::2]}
     write_json_atomic(work.split, split)
@@ -130,7 +139,9 @@ def _shard_one(item: tuple[str, list[str], str, float]) -> str:
     return dst
 
 
-def run_shard(work: WorkDir, config: FakeConfig, client: Any = None, progress: bool = True) -> dict:
+def run_shard(
+    work: WorkDir, config: FakeConfig, executor: Executor | None = None, progress: bool = True
+) -> dict:
     split = json.loads(work.split.read_text())
     folder = str(work.preprocess_dir / "frames")
     train = split["train"]
@@ -138,10 +149,17 @@ def run_shard(work: WorkDir, config: FakeConfig, client: Any = None, progress: b
         (folder, train[i : i + 2], str(work.shards_dir / f"shard-{i // 2:03d}.txt"), config.delay)
         for i in range(0, len(train), 2)
     ]
-    map_bounded(client, _shard_one, items, progress=progress)
-    write_json_atomic(work.bounds, {"scale": config.scale})
+    (executor or LoopExecutor()).map(_shard_one, items, progress=progress)
     write_json_atomic(work.shards_dir / "manifest.json", {"shards": len(items)})
     return _report(work, "shard", counts={"shards": len(items)})
+
+
+def run_bounds(
+    work: WorkDir, config: FakeConfig, executor: Executor | None = None, progress: bool = True
+) -> dict:
+    bounds = {"scale": config.scale, "shards": len(json.loads(work.split.read_text())["train"])}
+    write_json_atomic(work.bounds, bounds)
+    return _report(work, "bounds", counts=bounds)
 
 
 @dataclass(frozen=True)
@@ -154,7 +172,9 @@ class FakeTrainConfig:
         return _from_dict(cls, d)
 
 
-def run_train(work: WorkDir, config: FakeTrainConfig, client: Any = None, progress: bool = True) -> dict:
+def run_train(
+    work: WorkDir, config: FakeTrainConfig, executor: Executor | None = None, progress: bool = True
+) -> dict:
     ckpt = work.train_dir / "checkpoint.json"
     state = json.loads(ckpt.read_text()) if ckpt.exists() else {"step": 0, "weight": 0}
     values = [int(v) for p in sorted(work.shards_dir.glob("shard-*.txt")) for v in p.read_text().split(",")]
@@ -165,8 +185,14 @@ def run_train(work: WorkDir, config: FakeTrainConfig, client: Any = None, progre
     return _report(work, "train", counts={"steps": state["step"]})
 
 
-def run_eval(work: WorkDir, config: FakeConfig, client: Any = None, progress: bool = True) -> dict:
+def run_eval(
+    work: WorkDir, config: FakeConfig, executor: Executor | None = None, progress: bool = True
+) -> dict:
     state = json.loads((work.train_dir / "checkpoint.json").read_text())
     metrics = {"score": state["weight"] * config.scale}
     write_json_atomic(work.eval_dir / "metrics.json", metrics)
     return _report(work, "eval", metrics=metrics)
+
+
+# The config class of each fake stage (the pipeline reads CONFIG_CLASSES of an entry point's module).
+CONFIG_CLASSES = {s: FakeTrainConfig if s == "train" else FakeConfig for s in STAGES}

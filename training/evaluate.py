@@ -24,6 +24,7 @@ from tqdm import tqdm
 
 from lightstage.atomic import write_json_atomic
 from lightstage.errors import LightstageError
+from lightstage.executor import Executor
 from lightstage.records.shards import TestImage
 from lightstage.tonemap import tonemap, tonemap_u8
 from lightstage.training.ceiling import CleanRenders
@@ -106,13 +107,13 @@ def scores_keys() -> list[str]:
 def run_eval(
     work: WorkDir,
     config: EvalConfig | None = None,
-    client=None,
+    executor: Executor | None = None,
     progress: bool = True,
     checkpoint: Path | None = None,
     device: str = "cpu",
 ) -> dict[str, Any]:
     """Score the trained model on the test split in WORK/shards/test; writes reports/eval.json and eval PNGs.
-    `config` is an EvalConfig (None: the one stored with the checkpoint). `client` is unused (rendering is GPU work)."""
+    `config` is an EvalConfig (None: the one stored with the checkpoint). `executor` is unused (rendering is GPU work)."""
     from lightstage.training.inference import load_trained
     from lightstage.training.inputs import count_test_images, iter_test_images
     from lightstage.training.lpips import lpips_or_none

@@ -10,6 +10,7 @@ import torch
 
 from lightstage.atomic import write_json_atomic
 from lightstage.errors import LightstageError
+from lightstage.executor import Executor
 from lightstage.training.config import TrainConfig
 from lightstage.workdir import WorkDir
 
@@ -40,14 +41,14 @@ def init_distributed(device: torch.device) -> bool:
 def run_train(
     work: WorkDir,
     config: TrainConfig,
-    client: Any = None,
+    executor: Executor | None = None,
     progress: bool = True,
     device: str | None = None,
     stop_at: int | None = None,
 ) -> dict[str, Any]:
     """Train from WORK/shards into WORK/train (resuming from its checkpoint); rank 0 writes reports/train.json.
     `stop_at` ends this run at that step (checkpointed; a later run resumes to `optim.steps`), so a long training
-    can be split over time-limited jobs. `client` is accepted for the stage API and unused (training is one GPU
+    can be split over time-limited jobs. `executor` is accepted for the stage API and unused (training is one GPU
     job, multi-GPU through torchrun)."""
     from lightstage.training.inputs import ShardSource, iter_test_images
     from lightstage.training.trainer import distributed, fit
