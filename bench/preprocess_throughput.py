@@ -241,7 +241,7 @@ def _worker_peak_rss_mb() -> float:
 
 def run_stage(capture: Path, work_root: Path, workers: int, chunk_lights: int, compression: str) -> dict:
     """Run the whole stage on a fresh LocalCluster of `workers` single-threaded processes."""
-    from lightstage.pipelines.cluster import ClusterSettings, dask_client
+    from lightstage.pipelines.cluster import ClusterSettings, open_executor
     from lightstage.preprocess.config import PreprocessConfig
     from lightstage.preprocess.run import run_preprocess
     from lightstage.workdir import WorkDir
@@ -250,12 +250,12 @@ def run_stage(capture: Path, work_root: Path, workers: int, chunk_lights: int, c
     work.root.mkdir(parents=True)
     work.capture_pointer.write_text(str(capture))
     config = PreprocessConfig(chunk_lights=chunk_lights, compression=compression)
-    with dask_client(ClusterSettings(workers=workers, dashboard=""), verbose=False) as client:
+    with open_executor(ClusterSettings(workers=workers, dashboard=""), verbose=False) as executor:
         load0 = os.getloadavg()[0]
         t = time.perf_counter()
-        summary = run_preprocess(work, config, client=client, progress=False)
+        summary = run_preprocess(work, config, executor, progress=False)
         wall = time.perf_counter() - t
-        rss = sorted(client.run(_worker_peak_rss_mb).values())
+        rss = sorted(executor.client.run(_worker_peak_rss_mb).values())
     report = json.loads(work.report("preprocess").read_text())
     n = report["counts"]["processed"]
     chunk_s = chunk_cpu = view_s = 0.0

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from lightstage.atomic import atomic_path
-from lightstage.errors import LightstageError
+from lightstage.errors import EnvironmentFault, LightstageError, is_environment_error
 
 PNG_END = b"IEND\xaeB`\x82"  # the last 8 bytes of every PNG: the IEND chunk's type and CRC
 # No frame of a supported stage is larger than this (8192x5464 is 44.8 Mpx); guards hostile headers.
@@ -124,11 +124,13 @@ def read_exr_header(path: str | os.PathLike[str]) -> FrameHeader:
     """
     path = Path(path)
     try:
-        with path.open("rb") as f:
+        _check_regular(path)  # before any open: opening a FIFO blocks until a writer appears
+        # O_NONBLOCK: should the path be swapped for a FIFO after the check, the open does not wait either
+        with os.fdopen(os.open(path, os.O_RDONLY | os.O_NONBLOCK), "rb") as f:
             st = os.fstat(f.fileno())
             size = st.st_size
             if not stat.S_ISREG(st.st_mode):
-                raise _Bad("not a regular file")
+                raise _Bad(_file_kind(st.st_mode))
             if size == 0:
                 raise _Bad("empty file")
             head = f.read(min(size, 4096))  # a typical header is well under 1 KB
@@ -148,7 +150,7 @@ def read_exr_header(path: str | os.PathLike[str]) -> FrameHeader:
     except FileNotFoundError:
         raise LightstageError(f"{path}: file not found") from None
     except OSError as e:
-        raise LightstageError(f"{path}: cannot read ({e.strerror or e})") from None
+        raise _os_error(path, e) from None
     first = parts[0]
     x0, y0, x1, y1 = first.window
     channels = {n: t for n, (t, _, _, _) in first.channels.items()}
@@ -177,6 +179,89 @@ def read_exr_header(path: str | os.PathLike[str]) -> FrameHeader:
 
 class _NeedMore(Exception):
     """Internal: the header runs past the bytes read so far."""
+
+
+def _check_regular(path: Path) -> None:
+    """Raise _Bad for a path that is not a regular file (FIFO, device, socket, directory), from stat alone."""
+    st = os.stat(path)
+    if not stat.S_ISREG(st.st_mode):
+        raise _Bad(_file_kind(st.st_mode))
+
+
+def _file_kind(mode: int) -> str:
+    """What a non-regular file is, for the message (a FIFO or a device would hang or stream forever)."""
+    for test, what in (
+        (stat.S_ISFIFO, "a FIFO"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISSOCK, "a socket"),
+        (stat.S_ISDIR, "a directory"),
+    ):
+        if test(mode):
+            return f"not a regular file ({what})"
+    return "not a regular file"
+
+
+def _os_error(path: Path, e: OSError) -> LightstageError:
+    """An OSError met reading `path`: an EnvironmentFault (retried, never a bad frame) when its errno says the
+    machine failed (permission, I/O error, ...), else a LightstageError about the file."""
+    cls = EnvironmentFault if is_environment_error(e) else LightstageError
+    return cls(f"{path}: cannot read ({e.strerror or e})")
+
+
+def prefetch_file(path: str | os.PathLike[str], timeout_s: float) -> None:
+    """Read the whole file once in a helper thread (it lands in the page cache the decoder then reads), so that
+    stalled storage fails within `timeout_s` naming the file instead of hanging the task: an EnvironmentFault
+    for the timeout and for OSErrors of the machine, a LightstageError for a FIFO, device or missing file.
+    Costs ~0.01 CPU-s per 200 MB from the page cache. A stalled thread is left behind (it cannot be stopped)."""
+    import threading
+
+    path = Path(path)
+    outcome: list[BaseException | None] = []
+    done = threading.Event()
+
+    def run() -> None:
+        try:
+            _read_all(path)
+            outcome.append(None)
+        except BaseException as e:  # noqa: BLE001 - handed to the waiting thread
+            outcome.append(e)
+        done.set()
+
+    threading.Thread(target=run, name=f"prefetch {path.name}", daemon=True).start()
+    if not done.wait(timeout_s):
+        raise EnvironmentFault(f"{path}: read stalled: the file was not read within {timeout_s:g} s")
+    e = outcome[0]
+    if e is None:
+        return
+    if isinstance(e, _Bad):
+        raise LightstageError(f"{path}: {e}")
+    if isinstance(e, FileNotFoundError):
+        raise LightstageError(f"{path}: file not found")
+    if isinstance(e, OSError):
+        raise _os_error(path, e)
+    raise e
+
+
+_READ_BUFFERS: list[memoryview] = []  # free 8 MB read buffers (a stalled read keeps its own)
+
+
+def _read_all(path: Path) -> None:
+    """Read `path` to its end into a reused buffer (the type is checked before the open)."""
+    try:
+        buf = _READ_BUFFERS.pop()
+    except IndexError:
+        buf = memoryview(bytearray(8 << 20))
+    try:
+        _check_regular(path)
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+        try:
+            while os.readv(fd, [buf]):
+                pass
+        finally:
+            os.close(fd)
+    finally:
+        _READ_BUFFERS.append(buf)
 
 
 def _parse_headers(buf: bytes, file_size: int) -> tuple[list[_Part], int, int]:
@@ -427,7 +512,7 @@ def check_exr_header(
         )
 
 
-def _set_exr_limits() -> None:
+def set_exr_limits() -> None:
     """OpenEXR's own size guards (a second line of defence behind check_exr_header)."""
     import OpenEXR
 
@@ -450,7 +535,7 @@ def read_exr(
 
     header = read_exr_header(path)
     check_exr_header(header, expected_size, channels)
-    _set_exr_limits()
+    set_exr_limits()
     try:
         f = OpenEXR.File(str(header.path), separate_channels=True)
         planes = f.parts[0].channels
@@ -503,12 +588,23 @@ def check_pixels(pixels: np.ndarray, saturation: float | None = None, rows_per_b
                 np.count_nonzero((band >= saturation).any(axis=-1) if band.ndim == 3 else band >= saturation)
             )
     npx = pixels.shape[0] * pixels.shape[1]
-    frac = saturated / npx if npx else 0.0
+    return pixel_verdict(non_finite, negative, saturated / npx if npx else 0.0)
+
+
+def pixel_verdict(non_finite: int, negative: int, saturated_fraction: float = 0.0) -> PixelCheck:
+    """The one pixel policy, applied by `validate --deep` (check_pixels) and preprocess alike: a raw frame with
+    any NaN/Inf sample, or any negative sample, is rejected (a content error: the frame is bad and unused);
+    nothing is clamped. Radiance is never negative, so negatives mean a broken black-level subtraction or
+    a foreign file, which should be fixed upstream rather than averaged into the processed frames."""
     if non_finite:
-        return PixelCheck("non_finite", f"{non_finite} NaN/Inf samples", non_finite, negative, frac)
+        return PixelCheck(
+            "non_finite", f"{non_finite} NaN/Inf samples", non_finite, negative, saturated_fraction
+        )
     if negative:
-        return PixelCheck("negative", f"{negative} negative samples", non_finite, negative, frac)
-    return PixelCheck("ok", "", 0, 0, frac)
+        return PixelCheck(
+            "negative", f"{negative} negative samples", non_finite, negative, saturated_fraction
+        )
+    return PixelCheck("ok", "", 0, 0, saturated_fraction)
 
 
 def write_exr(

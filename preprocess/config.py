@@ -10,6 +10,7 @@ from typing import Any
 
 from lightstage.config import ConfigError, load
 from lightstage.frames import COMPRESSIONS
+from lightstage.preprocess.downscale import DECODERS
 
 
 @dataclass(frozen=True)
@@ -24,6 +25,14 @@ class PreprocessConfig:
     # frame for the cheapest write; "piz" makes frames ~1/3 smaller for more CPU (docs/benchmarks.md).
     compression: str = "none"
     band_rows: int = 32  # raw rows decoded and downscaled per band (multiple of 4): stays in cache
+    # raw frame decoder, same results: openexr (whole frame, then banded downscale: the decode floor on every
+    # CPU measured, +270 MB per worker) | bands (OpenImageIO scanline bands: never the whole frame in memory)
+    decoder: str = "openexr"
+    # ---- reliability
+    read_timeout_s: float = (
+        120.0  # a raw frame not read within this fails the task naming it (stalled storage)
+    )
+    max_bad_fraction: float = 0.05  # the stage fails when more than this fraction of frames is missing or bad
     # ---- scheduling
     chunk_lights: int = 32  # lights per task: a chunk's partial statistics merge with the others in a tree
     window: int = 0  # tasks in flight with a dask client (0: 4 per worker thread)
@@ -98,6 +107,10 @@ class PreprocessConfig:
             raise bad("segmentation", "expected adaptive or lit_fraction")
         if self.compression not in COMPRESSIONS:
             raise bad("compression", f"expected one of {', '.join(COMPRESSIONS)}")
+        if self.decoder not in DECODERS:
+            raise bad("decoder", f"expected one of {', '.join(DECODERS)}")
+        if not self.read_timeout_s > 0:
+            raise bad("read_timeout_s", "expected a number of seconds > 0")
         if self.band_rows < 4 or self.band_rows % 4:
             raise bad("band_rows", "expected a positive multiple of 4")
         for key in ("chunk_lights", "flare_thumb"):
@@ -135,6 +148,7 @@ class PreprocessConfig:
             "max_saturated_fraction",
             "min_component_fraction",
             "max_lost_fraction",
+            "max_bad_fraction",
             "border_width",
             "contrast_fraction",
             "flag_border_fraction",
@@ -160,9 +174,12 @@ class PreprocessConfig:
 
     def view_key(self) -> str:
         """Hash of everything the per-view outputs depend on."""
-        keep = {k: v for k, v in self.to_dict().items() if k not in ("window", "band_rows", "compression")}
+        keep = {k: v for k, v in self.to_dict().items() if k not in _NOT_IN_VIEW_KEY}
         return _hash({**keep, "format": STATS_FORMAT})
 
+
+# Settings that change how, not what, a view is computed (the decoders give identical frames).
+_NOT_IN_VIEW_KEY = ("window", "band_rows", "compression", "decoder", "read_timeout_s", "max_bad_fraction")
 
 # Bumped when the statistics or segmentation change meaning, so stale view outputs are recomputed.
 STATS_FORMAT = 3  # 2: frame thumbnails cover whole blocks only; 3: brightness ladder, frames / LED intensity, flare vs the upper quartile

@@ -1,8 +1,11 @@
 """Decode a raw frame and make its exact 4x area-average downscale plus the per-pixel saturation flag.
 
-The preprocess stage decodes a raw frame in row bands (OpenImageIO scanline reads, `decode_downscale`) and
-downscales each band while it is still in cache, which costs about the decode alone; `decode_raw` (OpenEXR,
-whole frame) + `downscale` gives the same numbers for an in-memory frame. Row bands are converted half -> float32 with
+Two decoders give identical results (`DECODERS`, config `decoder`): `openexr` (the default) decodes the whole
+frame with OpenEXR (`decode_raw`) and then downscales it in row bands (`downscale`); `bands` decodes row bands
+with OpenImageIO's scanline reads (`decode_downscale`), so the full frame is never in memory. OpenEXR's decoder
+is the floor on every CPU measured, OpenImageIO's is not (1.06 vs 0.57 CPU-s per 8192x5464 ZIP frame on an
+AMD EPYC VM, about equal on an Intel Xeon one), and the banded downscale of a decoded frame costs 0.06 CPU-s,
+so `openexr` stays within ~1.1x of the decode floor on both (docs/benchmarks.md) for 270 MB more per worker. Row bands are converted half -> float32 with
 PyTorch (vectorised; numpy's half conversion is ~20x slower) into a reused buffer and averaged with
 `cv2.resize(INTER_AREA)`, whose integer-factor path sums each 4x4 block in float32 and scales by 1/16 (a
 power of two, so no extra rounding). Saturation is tested on the raw half bits: for non-negative halfs the
@@ -19,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from lightstage.errors import LightstageError
-from lightstage.frames import oiio_error, read_exr_header
+from lightstage.frames import check_exr_header, oiio_error, read_exr_header, set_exr_limits
 from lightstage.workdir import DOWNSCALE
 
 
@@ -31,32 +34,26 @@ def saturation_half(cutoff: float) -> np.float16:
     return h
 
 
+DECODERS = ("openexr", "bands")
+
+
 @dataclass(frozen=True)
 class Downscaled:
-    """A processed frame in memory: (h, w, 3) float32 linear RGB and (h, w) bool saturation flags."""
+    """A processed frame in memory: (h, w, 3) float32 linear RGB and (h, w) bool saturation flags, with the
+    counts of the source's NaN/Inf and negative samples (`lightstage.frames.pixel_verdict` judges them)."""
 
     rgb: np.ndarray
     saturated: np.ndarray
+    non_finite: int = 0
+    negative: int = 0
 
 
 def _check_raw_header(path: Path, size: tuple[int, int]) -> str:
-    """Refuse a raw frame whose header is not a complete RGB half/float EXR of `size`; return the RGB
-    sample type ('half' or 'float')."""
+    """Refuse a raw frame whose header is not a complete RGB half/float EXR of `size` (the checks `read_exr`
+    makes: truncation, size, decode bytes, channels); return the RGB sample type ('half' or 'float')."""
     header = read_exr_header(path)
-    problem = getattr(header, "chunk_problem", None)
-    if problem:
-        raise LightstageError(f"{path}: {problem}")
-    if (header.width, header.height) != tuple(size):
-        raise LightstageError(
-            f"{path}: resolution {header.width}x{header.height}, expected {size[0]}x{size[1]}"
-        )
-    missing = [c for c in "RGB" if c not in header.channels]
-    if missing:
-        raise LightstageError(f"{path}: missing channel(s) {', '.join(missing)}")
-    kinds = {header.channels[c] for c in "RGB"}
-    if len(kinds) != 1 or not kinds <= {"half", "float"}:
-        raise LightstageError(f"{path}: R, G, B must all be half or all float, got {sorted(kinds)}")
-    return kinds.pop()
+    check_exr_header(header, size, "RGB")
+    return header.channels["R"]
 
 
 def decode_raw(path: str | os.PathLike[str], size: tuple[int, int]) -> np.ndarray:
@@ -69,6 +66,7 @@ def decode_raw(path: str | os.PathLike[str], size: tuple[int, int]) -> np.ndarra
 
     path = Path(path)
     _check_raw_header(path, size)
+    set_exr_limits()
     try:
         f = OpenEXR.File(str(path))
         channels = f.parts[0].channels
@@ -107,6 +105,7 @@ class BandDownscaler:
         self._buf = torch.empty((min(band_rows, H), W, 3), dtype=torch.float32)
         self._cut_bits = int(saturation_half(cutoff).view(np.int16))
         self._row = 0
+        self.non_finite = self.negative = 0
 
     def add(self, band: np.ndarray) -> None:
         """Average the next (n, W, 3) half/float rows into the output (n a multiple of the factor)."""
@@ -123,18 +122,33 @@ class BandDownscaler:
         cv2.resize(buf.numpy(), (W // f, n // f), dst=self.rgb[rows], interpolation=cv2.INTER_AREA)
         if band.dtype == np.float16:
             # for non-negative halfs the int16 view orders like the value: no float test needed unless
-            # the band reaches the cutoff (NaN bit patterns also compare high; such frames are rejected later)
+            # the band reaches the cutoff (NaN bit patterns also compare high; such frames are rejected later);
+            # a sign bit (int16 < 0) or an all-ones exponent (>= 0x7C00: Inf/NaN) sends the band to be counted
             bits = band.view(np.int16)
-            if int(torch.from_numpy(bits).max()) >= self._cut_bits:
+            lo, hi = (int(v) for v in torch.aminmax(torch.from_numpy(bits)))
+            if hi >= self._cut_bits:
                 self.saturated[rows] = _block_any((bits >= self._cut_bits).any(axis=-1), f)
-        elif float(buf.max()) >= self.cutoff:
-            self.saturated[rows] = _block_any((buf.numpy() >= self.cutoff).any(axis=-1), f)
+            if lo < 0 or hi >= 0x7C00:
+                self._count_bad(buf)
+        else:
+            lo, hi = (float(v) for v in torch.aminmax(buf))
+            if hi >= self.cutoff:
+                self.saturated[rows] = _block_any((buf.numpy() >= self.cutoff).any(axis=-1), f)
+            if not (lo >= 0.0 and hi < np.inf):
+                self._count_bad(buf)
         self._row = y + n
+
+    def _count_bad(self, buf) -> None:  # noqa: ANN001 - a torch tensor
+        """Count the band's NaN/Inf and negative samples (as `lightstage.frames.check_pixels` counts them)."""
+        import torch
+
+        self.non_finite += int((~torch.isfinite(buf)).sum())
+        self.negative += int((buf < 0).sum())
 
     def result(self) -> Downscaled:
         if self._row != self.size[1]:
             raise LightstageError(f"frame ended after {self._row} of {self.size[1]} rows")
-        return Downscaled(self.rgb, self.saturated)
+        return Downscaled(self.rgb, self.saturated, self.non_finite, self.negative)
 
 
 def downscale(pixels: np.ndarray, cutoff: float, band_rows: int = 256, factor: int = DOWNSCALE) -> Downscaled:

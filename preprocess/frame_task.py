@@ -5,11 +5,16 @@ from __future__ import annotations
 
 import json
 import time
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from lightstage.errors import LightstageError
+from lightstage.atomic import atomic_path
+from lightstage.errors import EnvironmentFault, LightstageError, is_environment_error
+from lightstage.frames import pixel_verdict, prefetch_file
 from lightstage.ids import FrameId, ViewId
+from lightstage.preprocess.downscale import Downscaled, decode_downscale, decode_raw, downscale
 from lightstage.preprocess.jobs import (
     ChunkJob,
     ChunkRecord,
@@ -17,24 +22,23 @@ from lightstage.preprocess.jobs import (
     partial_path,
     reason_of,
     remove_stale_temps,
+    sfm_frame_path,
 )
 from lightstage.workdir import DOWNSCALE, WorkDir
+
+if TYPE_CHECKING:
+    from lightstage.records.processed import HalfRounder
 
 
 # ---- the chunk task -------------------------------------------------------------------------------------------
 def process_chunk(job: ChunkJob) -> ChunkRecord:
     """Downscale (or read back) every frame of a chunk, accumulate its statistics and thumbnails, and save
-    them as the chunk's partial file. Per-frame problems are recorded, never raised."""
-    from lightstage.preprocess.downscale import decode_downscale
+    them as the chunk's partial file. Content problems of a frame are recorded, never raised; a fault of the
+    environment (lightstage.errors.EnvironmentFault: permission, disk full, I/O error, a stalled read) fails the
+    task before its partial is saved, so nothing of it is remembered and a retry or a rerun redoes the chunk."""
     from lightstage.preprocess.flare import lit_threshold, thumbnail
     from lightstage.preprocess.stats import StatsAccumulator
-    from lightstage.records.processed import (
-        HalfRounder,
-        processed_ok,
-        read_processed_half,
-        to_float,
-        write_processed,
-    )
+    from lightstage.records.processed import HalfRounder
     from lightstage.tonemap import luminance
 
     if in_dask_worker():
@@ -65,7 +69,9 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
     remove_stale_temps(
         work.frame(FrameId(job.group, job.camera, 0)).parent, [f"{lt:03d}" for lt in job.lights]
     )
-    remove_stale_temps(partial.parent, [partial.stem])
+    remove_stale_temps(
+        partial.parent, [partial.stem, *(sfm_frame_path(work, view, lt).stem for lt in job.lights)]
+    )
     acc = StatsAccumulator(h, w, job.cutoff)
     rounder = HalfRounder(h, w)
     thumbs, sthumbs, taus = [], [], []
@@ -73,35 +79,26 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
     processed = reused = 0
     gains = job.intensities or ((1.0, 1.0, 1.0),) * len(job.lights)
     for light, raw, gain in zip(job.lights, job.raw_paths, gains, strict=True):
-        out = work.frame(FrameId(job.group, job.camera, light))
         try:
-            if processed_ok(out, (w, h)):
-                rgb_h, sat = read_processed_half(out, (w, h))
-                rgb32 = to_float(rgb_h)
-                reused += 1
-            else:
-                small = decode_downscale(raw, (W, H), job.cutoff, cfg.band_rows)
-                rgb32, sat = small.rgb, small.saturated
-                if job.exposure_scale != 1.0:
-                    rgb32 *= np.float32(job.exposure_scale)
-                if tuple(gain) != (1.0, 1.0, 1.0):  # equal white lights downstream
-                    rgb32 *= (1.0 / np.asarray(gain, np.float64)).astype(np.float32)
-                check_finite(rgb32, raw)
-                write_processed(
-                    out, rounder(rgb32), sat, cfg.compression
-                )  # rgb32 now holds the stored values
-                processed += 1
-            lum = luminance(rgb32)
-            th = thumbnail(lum, sat, cfg.flare_thumb)
-            tau = lit_threshold(th, job.cutoff, cfg.lit_ratio, cfg.lit_floor)
-            acc.add(light, rgb32, sat, tau, lum)
-            thumbs.append(th.lum)
-            sthumbs.append(th.saturated.astype(np.float16))
-            taus.append(tau)
+            rgb32, sat, made = frame_for_stats(job, light, raw, gain, rounder)
+        except EnvironmentFault:
+            raise  # the machine, not the frame: fail the task (retried), never a bad frame
         except Exception as e:  # noqa: BLE001 - one bad frame must not stop the batch
             if isinstance(e, MemoryError | KeyboardInterrupt):
                 raise
+            if is_environment_error(e):
+                raise EnvironmentFault(f"{raw}: {reason_of(e)}") from e
             problems.append((light, reason_of(e)))
+            continue
+        processed += made
+        reused += not made
+        lum = luminance(rgb32)
+        th = thumbnail(lum, sat, cfg.flare_thumb)
+        tau = lit_threshold(th, job.cutoff, cfg.lit_ratio, cfg.lit_floor)
+        acc.add(light, rgb32, sat, tau, lum)
+        thumbs.append(th.lum)
+        sthumbs.append(th.saturated.astype(np.float16))
+        taus.append(tau)
     stats = acc.finish()
     records = {"problems": problems, "processed": processed, "reused": reused}
     th_shape = thumb_shape(h, w, cfg.flare_thumb)
@@ -124,6 +121,69 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
         time.perf_counter() - start,
         time.process_time() - cpu0,
     )
+
+
+def frame_for_stats(
+    job: ChunkJob, light: int, raw: str, gain: tuple[float, float, float], rounder: HalfRounder
+) -> tuple[np.ndarray, np.ndarray, bool]:
+    """One frame of the chunk as the statistics see it: ((h, w, 3) float32 as stored, (h, w) saturated, True
+    when it was made now). A valid processed frame is read back; otherwise the raw frame is decoded, judged
+    (pixel policy), scaled, written, and for an SfM light also downscaled to the SfM image's resolution.
+    Content errors raise a LightstageError naming the raw file; failing to write is an EnvironmentFault."""
+    from lightstage.records.processed import processed_ok, read_processed_half, to_float, write_processed
+
+    cfg, work = job.config, WorkDir.at(job.work_root)
+    W, H = job.raw_size
+    size = (W // DOWNSCALE, H // DOWNSCALE)
+    out = work.frame(FrameId(job.group, job.camera, light))
+    if processed_ok(out, size):
+        try:
+            rgb_h, sat = read_processed_half(out, size)
+            return to_float(rgb_h), sat, False
+        except EnvironmentFault:
+            raise
+        except LightstageError:
+            pass  # our own output is unreadable: make it again from the raw frame
+    small, sfm = decode_frame(job, raw, light in job.sfm_lights)
+    verdict = pixel_verdict(small.non_finite, small.negative)
+    if not verdict.ok:
+        raise LightstageError(f"{raw}: {verdict.status.replace('_', '-')} pixels ({verdict.message})")
+    rgb32, sat = small.rgb, small.saturated
+    if job.exposure_scale != 1.0:
+        rgb32 *= np.float32(job.exposure_scale)
+    if tuple(gain) != (1.0, 1.0, 1.0):  # equal white lights downstream
+        rgb32 *= (1.0 / np.asarray(gain, np.float64)).astype(np.float32)
+    check_finite(rgb32, raw)
+    try:
+        write_processed(out, rounder(rgb32), sat, cfg.compression)  # rgb32 now holds the stored values
+        if sfm is not None:
+            save_array_atomic(sfm_frame_path(work, ViewId(job.group, job.camera), light), sfm)
+    except Exception as e:  # noqa: BLE001 - our outputs, not the raw frame: the disk or the directory failed
+        raise EnvironmentFault(f"{out}: cannot write ({reason_of(e)})") from None
+    return rgb32, sat, True
+
+
+def decode_frame(job: ChunkJob, raw: str, for_sfm: bool) -> tuple[Downscaled, np.ndarray | None]:
+    """Decode a raw frame (read first within the read timeout) into its processed-size downscale and, when
+    `for_sfm`, its downscale at the SfM image's factor (x exposure_scale, as sfm_image.sfm_mean_image makes
+    it), both from one decode with the `openexr` decoder; the `bands` decoder leaves the SfM frame to the view."""
+    cfg = job.config
+    prefetch_file(raw, cfg.read_timeout_s)
+    if cfg.decoder == "bands":
+        return decode_downscale(raw, job.raw_size, job.cutoff, cfg.band_rows), None
+    pixels = decode_raw(raw, job.raw_size)
+    small = downscale(pixels, job.cutoff, cfg.band_rows)
+    if not for_sfm or job.sfm_factor >= DOWNSCALE:
+        return small, None
+    sfm = downscale(pixels, job.cutoff, cfg.band_rows, job.sfm_factor).rgb
+    sfm *= np.float32(job.exposure_scale)
+    return small, sfm
+
+
+def save_array_atomic(path: Path, array: np.ndarray) -> None:
+    """np.save through a temp file and a rename (lightstage.atomic), so a killed task leaves no partial file."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.save(f, array, allow_pickle=False)
 
 
 def check_finite(rgb: np.ndarray, raw: str) -> None:

@@ -8,10 +8,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from lightstage.atomic import temp_owner
 from lightstage.errors import LightstageError
 from lightstage.ids import ViewId
 from lightstage.preprocess.config import PreprocessConfig
-from lightstage.workdir import WorkDir
+from lightstage.workdir import DOWNSCALE, WorkDir
 
 VIEW_RECORD = "view.json"
 PARTIALS = "partials"
@@ -35,6 +36,10 @@ class ChunkJob:
     config: PreprocessConfig
     # per light of the chunk, its relative RGB intensity (stage.yaml); processed frames are divided by it
     intensities: tuple[tuple[float, float, float], ...] = ()
+    # the view's SfM lights (sfm_image.spread_lights) and the SfM image's factor: below DOWNSCALE, the chunk
+    # also saves those frames at raw / factor, so the view task need not decode them again
+    sfm_lights: tuple[int, ...] = ()
+    sfm_factor: int = DOWNSCALE
 
 
 @dataclass(frozen=True)
@@ -103,6 +108,11 @@ def partial_path(work: WorkDir, view: ViewId, index: int, key: str) -> Path:
     return work.view_dir(view) / PARTIALS / f"chunk{index:04d}-{key}.npz"
 
 
+def sfm_frame_path(work: WorkDir, view: ViewId, light: int) -> Path:
+    """Where a chunk leaves an SfM light's frame at the SfM resolution for its view task (float32 .npy)."""
+    return work.view_dir(view) / PARTIALS / f"sfm-{light:03d}.npy"
+
+
 def split_lights(lights: list[int], size: int) -> list[tuple[int, ...]]:
     return [tuple(lights[i : i + size]) for i in range(0, len(lights), size)]
 
@@ -126,13 +136,27 @@ def file_signature(path: str) -> list[float]:
 
 
 def remove_stale_temps(directory: Path, stems: list[str]) -> None:
-    """Delete temp files a killed writer left for these outputs (lightstage.atomic names them
-    `.<stem>.<random>.tmp<suffix>`); only the task that owns the outputs calls this."""
+    """Delete the temp files killed writers left for these outputs (lightstage.atomic names them
+    `.<stem>.<pid>.<random>.tmp<suffix>`): this process's own and those of a process that no longer exists,
+    never a live process's (a concurrent run's in-flight file). Only the task that owns the outputs calls this."""
     if not directory.is_dir():
         return
     for stem in stems:
         for p in directory.glob(f".{stem}.*.tmp*"):
-            p.unlink(missing_ok=True)
+            owner = temp_owner(p.name)
+            if owner is None or owner == os.getpid() or not _alive(owner):
+                p.unlink(missing_ok=True)
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process with this pid exists on this machine (signal 0 checks without sending anything)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # exists, owned by another user
+    return True
 
 
 def reason_of(e: BaseException) -> str:

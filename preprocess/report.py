@@ -176,6 +176,7 @@ def build_report(
         "config_key": config.view_key(),
         "processed_size": list(jobs[0].size) if jobs else None,
         "downscale": DOWNSCALE,
+        "decoder": config.decoder,  # which decode path ran (downscale.DECODERS; identical outputs)
         "exposure": exposure,
         "counts": counts,
         "problems": problems,
@@ -187,6 +188,7 @@ def build_report(
         + [f"view {f['view']}: suspicious mask: {'; '.join(f['reasons'])}" for f in masks_flagged],
         "errors": errors,
     }
+    report.update(outcome(jobs, records, problems, errors, counts["frames"], config.max_bad_fraction))
     if ious:
         vals = np.array(list(ious.values()))
         worst = min(ious, key=ious.get)
@@ -198,3 +200,37 @@ def build_report(
             "iou": ious,
         }
     return report
+
+
+def outcome(
+    jobs: list[ViewJob],
+    records: dict[ViewId, ViewRecord],
+    problems: list[dict[str, str]],
+    errors: list[str],
+    frames: int,
+    max_bad_fraction: float,
+) -> dict[str, Any]:
+    """The report's `status` ("complete" or "incomplete"), `missing` (the views that failed and the frames that
+    are missing or bad) and `failure` (why the stage must not count as done, or None). Incomplete: any view
+    failed (its outputs do not exist), or more than `max_bad_fraction` of the capture's frames are missing/bad."""
+    failed = [str(ViewId(j.group, j.camera)) for j in jobs if ViewId(j.group, j.camera) not in records]
+    bad = [p["frame"] for p in problems]
+    fraction = len(bad) / frames if frames else 0.0
+    why = []
+    if failed:
+        first = errors[0] if errors else failed[0]
+        why.append(f"{len(failed)} of {len(jobs)} views failed (first: {first})")
+    if fraction > max_bad_fraction:
+        why.append(
+            f"{len(bad)} of {frames} frames are missing or bad, more than max_bad_fraction = {max_bad_fraction:g}"
+        )
+    return {
+        "status": "incomplete" if why else "complete",
+        "missing": {
+            "views": failed,
+            "frames": bad,
+            "bad_fraction": round(fraction, 6),
+            "limit": max_bad_fraction,
+        },
+        "failure": "; ".join(why) or None,
+    }

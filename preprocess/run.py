@@ -18,8 +18,8 @@ import time
 from typing import Any
 
 from lightstage.atomic import write_json_atomic
-from lightstage.capture.layout import open_capture
-from lightstage.errors import LightstageError
+from lightstage.capture.layout import Capture, open_capture
+from lightstage.errors import LightstageError, StageIncomplete
 from lightstage.executor import Executor, LoopExecutor, TaskFailure
 from lightstage.ids import FrameId, ViewId
 from lightstage.preprocess.config import PreprocessConfig
@@ -33,6 +33,7 @@ from lightstage.preprocess.jobs import (
     split_lights,
 )
 from lightstage.preprocess.report import add_group_flags, build_report, write_previews
+from lightstage.preprocess.sfm_image import sfm_image_factor, spread_lights
 from lightstage.preprocess.view_task import process_view, read_gt_mask, view_finished
 from lightstage.records.ground_truth import GroundTruth
 from lightstage.workdir import DOWNSCALE, WorkDir
@@ -58,6 +59,8 @@ def run_preprocess(
     size = (stage.width // DOWNSCALE, stage.height // DOWNSCALE)
     lights = [lt.index for lt in stage.lights]
     intensities = {lt.index: tuple(float(x) for x in lt.intensity) for lt in stage.lights}
+    sfm_factor = sfm_image_factor(stage.width, stage.height, config.sfm_max_side)
+    sfm_lights = set(spread_lights(lights, config.sfm_lights)) if sfm_factor < DOWNSCALE else set()
     view_jobs: list[ViewJob] = []
     chunk_jobs: dict[ViewId, list[ChunkJob]] = {}
     for view in capture.views():
@@ -93,10 +96,13 @@ def run_preprocess(
                 capture.info.exposure_scale,
                 config,
                 tuple(intensities[lt] for lt in c),
+                tuple(lt for lt in c if lt in sfm_lights),
+                sfm_factor,
             )
             for i, c in enumerate(chunks)
         ]
 
+    check_frames_exist(capture, view_jobs)
     records: dict[ViewId, ViewRecord] = {}
     todo: list[ViewJob] = []
     for job in view_jobs:
@@ -155,7 +161,30 @@ def run_preprocess(
     summary["problems"] = len(report["problems"])
     summary["errors"] = len(errors)
     summary["report"] = str(work.report("preprocess"))
+    summary["status"] = report["status"]
+    if report["failure"]:  # the runner must not record the stage as done; a rerun retries what is missing
+        missing = report["missing"]
+        raise StageIncomplete(
+            f"preprocess: {report['failure']}; see {work.report('preprocess')}",
+            missing=missing["views"] + missing["frames"],
+            summary=summary,
+        )
     return summary
+
+
+def check_frames_exist(capture: Capture, jobs: list[ViewJob]) -> None:
+    """Refuse a capture none of whose expected frames exists (a path_template matching no file), naming the
+    template and an expected path, before any work starts."""
+    import os
+
+    for job in jobs:
+        if any(os.path.lexists(p) for p in job.raw_paths):
+            return
+    example = jobs[0].raw_paths[0] if jobs and jobs[0].raw_paths else "(no frames expected)"
+    raise LightstageError(
+        f"{capture.root / 'capture.yaml'}: path_template {capture.info.path_template!r} matches no frame "
+        f"(e.g. {example} does not exist)"
+    )
 
 
 def _run_views(

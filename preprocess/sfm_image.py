@@ -11,7 +11,8 @@ light and moves with the rig, not with the object). Bad and flare-rejected frame
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -51,12 +52,16 @@ class SfmSource:
     cutoff: float
     exposure_scale: float
     band_rows: int = 32
+    # light -> .npy a chunk task saved while it had the raw frame decoded (frame_task.decode_frame); a light
+    # without one is decoded from its raw frame here
+    cached: dict[int, str] = field(default_factory=dict)
+    decoder: str = "openexr"  # downscale.DECODERS
+    read_timeout_s: float = 120.0
 
 
 def sfm_mean_image(src: SfmSource, trim: bool) -> np.ndarray:
     """(H / f, W / f, 3) float32 linear mean of the source frames (with `trim`, per pixel and channel without the
     brightest one when more than two frames remain). A frame that cannot be read is an error naming it."""
-    from lightstage.preprocess.downscale import decode_downscale
     from lightstage.records.processed import read_processed
 
     W, H = src.raw_size
@@ -68,11 +73,12 @@ def sfm_mean_image(src: SfmSource, trim: bool) -> np.ndarray:
     for light in src.lights:
         if src.factor == DOWNSCALE:
             rgb, _ = read_processed(src.processed_paths[light], size)
+        elif light in src.cached and Path(src.cached[light]).is_file():
+            rgb = np.load(src.cached[light], allow_pickle=False)
+            if rgb.shape != (size[1], size[0], 3) or rgb.dtype != np.float32:
+                raise LightstageError(f"{src.cached[light]}: SfM frame is {rgb.dtype} {rgb.shape}")
         else:
-            rgb = decode_downscale(
-                src.raw_paths[light], src.raw_size, src.cutoff, src.band_rows, src.factor
-            ).rgb
-            rgb *= np.float32(src.exposure_scale)
+            rgb = _decode_at_factor(src, light)
         acc += rgb
         if top is not None:
             np.maximum(top, rgb, out=top)
@@ -82,6 +88,21 @@ def sfm_mean_image(src: SfmSource, trim: bool) -> np.ndarray:
         used -= 1
     acc *= np.float32(1.0 / used)
     return acc
+
+
+def _decode_at_factor(src: SfmSource, light: int) -> np.ndarray:
+    """A raw frame at raw / factor, x exposure_scale (what a chunk task saves in `cached`)."""
+    from lightstage.frames import prefetch_file
+    from lightstage.preprocess.downscale import decode_downscale, decode_raw, downscale
+
+    path = src.raw_paths[light]
+    prefetch_file(path, src.read_timeout_s)
+    if src.decoder == "bands":
+        rgb = decode_downscale(path, src.raw_size, src.cutoff, src.band_rows, src.factor).rgb
+    else:
+        rgb = downscale(decode_raw(path, src.raw_size), src.cutoff, src.band_rows, src.factor).rgb
+    rgb *= np.float32(src.exposure_scale)
+    return rgb
 
 
 def upsample_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:

@@ -24,6 +24,7 @@ from lightstage.preprocess.jobs import (
     file_signature,
     partial_path,
     remove_stale_temps,
+    sfm_frame_path,
 )
 from lightstage.workdir import WorkDir
 
@@ -127,6 +128,8 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
     write_json_atomic(vdir / VIEW_RECORD, asdict(record))
     for p in paths:
         p.unlink(missing_ok=True)
+    for lt in job.lights:  # the SfM frames the chunks left (only for SfM lights, below DOWNSCALE)
+        sfm_frame_path(work, view, lt).unlink(missing_ok=True)
     try:
         (vdir / PARTIALS).rmdir()
     except OSError:
@@ -164,6 +167,9 @@ def _sfm_image(work: WorkDir, job: ViewJob, usable: set[int]) -> tuple[np.ndarra
         cutoff=job.cutoff,
         exposure_scale=job.exposure_scale,
         band_rows=cfg.band_rows,
+        cached={lt: str(sfm_frame_path(work, view, lt)) for lt in chosen},
+        decoder=cfg.decoder,
+        read_timeout_s=cfg.read_timeout_s,
     )
     try:
         return sfm_mean_image(src, cfg.sfm_trim), chosen

@@ -301,7 +301,9 @@ def test_bad_frames_are_reported_and_skipped(tiny_capture: Path, tmp_path: Path)
     nan[7, 9, 1] = np.nan
     write_exr(frames / "cam01" / "002.exr", nan)  # non-finite
     work = _work(tmp_path / "work", cap)
-    summary = run_preprocess(work, PreprocessConfig(max_lost_fraction=0.3), progress=False)
+    summary = run_preprocess(
+        work, PreprocessConfig(max_lost_fraction=0.3, max_bad_fraction=0.3), progress=False
+    )
     report = json.loads(work.report("preprocess").read_text())
     reasons = {p["frame"]: p["reason"] for p in report["problems"]}
     assert set(reasons) == {
@@ -324,7 +326,7 @@ def test_bad_frames_are_reported_and_skipped(tiny_capture: Path, tmp_path: Path)
     assert flagged == {v for v, n in lost.items() if n / 12 > 0.3} and "000/cam00" in flagged
     # a rerun keeps the finished views; fixing a bad frame redoes only its view
     shutil.copy(tiny_capture / "frames" / "000" / "cam01" / "002.exr", frames / "cam01" / "002.exr")
-    run_preprocess(work, PreprocessConfig(max_lost_fraction=0.3), progress=False)
+    run_preprocess(work, PreprocessConfig(max_lost_fraction=0.3, max_bad_fraction=0.3), progress=False)
     again = json.loads(work.report("preprocess").read_text())
     assert again["counts"]["views_finished_before"] == 1 and again["counts"]["processed"] == 1
     assert "000/cam01/002" not in {p["frame"] for p in again["problems"]}
@@ -456,13 +458,17 @@ def test_killed_run_resumes_with_identical_outputs(tiny_capture: Path, tmp_path:
 def test_dask_client_gives_the_same_outputs(tiny_capture: Path, tmp_path: Path) -> None:
     from distributed import Client, LocalCluster
 
+    from lightstage.executor import DaskExecutor
+
     cap = _subset_capture(tiny_capture, tmp_path / "cap", groups=1, cameras=2)
     local = _work(tmp_path / "local", cap)
     run_preprocess(local, PreprocessConfig(chunk_lights=5), progress=False)
     dist = _work(tmp_path / "dask", cap)
     with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as lc:
         with Client(lc) as client:
-            summary = run_preprocess(dist, PreprocessConfig(chunk_lights=5), client=client, progress=False)
+            summary = run_preprocess(
+                dist, PreprocessConfig(chunk_lights=5), DaskExecutor(client), progress=False
+            )
     assert summary["counts"]["processed"] == 24 and summary["errors"] == 0
     a, b = _snapshot(local), _snapshot(dist)
     assert sorted(a) == sorted(b) and [k for k in a if a[k] != b[k]] == []
