@@ -178,6 +178,7 @@ SECTION_TYPOS = [
     ("calibrate", {"metod": "nominal"}, "calibrate.method"),
     ("split", {"protocl": "paper"}, "split.protocol"),
     ("split", {"protocol": {"lites": {"train": "rest"}}}, "split.protocol.lights"),
+    ("bounds", {"resolutoin": 32}, "bounds.resolution"),
     ("shard", {"rays_per_shrd": 4096}, "shard.rays_per_shard"),
     ("train", {"optim": {"lrr": 0.01}}, "train.optim.lr"),
     ("train", {"config": "tiny", "model": {"mlp": {"widht": 8}}}, "train.model.mlp.width"),
