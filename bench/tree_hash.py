@@ -3,7 +3,8 @@
 Every visible file below WORK counts by its relative path and bytes, except the per-stage reports
 (`reports/`: timings, hosts, the pipeline's records), `capture.txt` (an absolute path) and logs (`*.log`,
 timestamped). JSON outputs are hashed without the keys that differ between two runs of the same code
-(timings such as `seconds`, `created`; the cache keys `inputs_key`/`inputs_hash` over mtimes), with the work
+(timings such as `seconds`, `created`; the cache keys `inputs_key`/`inputs_hash` over mtimes; the counts of
+frames a task processed or reused, which a killed and resumed task splits differently), with the work
 and capture paths replaced by placeholders, so runs in different folders compare equal. Calibration's SfM
 is deterministic only with one pycolmap thread: compare runs made with `calibrate: {num_threads: 1}`.
 
@@ -22,9 +23,11 @@ from pathlib import Path
 from typing import Any
 
 EXCLUDED_TOP = ("reports", "capture.txt")
-# JSON keys that hold wall/CPU times, dates or cache keys over file mtimes and reports, not results.
+# JSON keys that hold wall/CPU times, dates, cache keys over file mtimes and reports, or how much work this
+# particular run did rather than read back (a resumed or rescheduled task reuses frames), not results.
 TIMING_KEYS = frozenset(
     {"seconds", "cpu_seconds", "created", "started", "finished", "timings", "inputs_key", "inputs_hash"}
+    | {"processed", "reused", "resumed"}
 )
 
 

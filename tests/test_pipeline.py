@@ -156,6 +156,50 @@ def test_cli_run_capture_and_work(tmp_path: Path, capture: Path, monkeypatch) ->
     assert cli_main(["run", str(capture), "--config", str(cfg)]) == 2  # no --work: one-line error
 
 
+# ---- stages that could not produce every expected output ------------------------------------------------
+def test_stage_with_missing_outputs_fails_is_not_done_and_is_retried(
+    tmp_path: Path, capture: Path, capsys
+) -> None:
+    ref = WorkDir.at(tmp_path / "ref")
+    run_pipeline(ref, fake_config(), capture=capture, progress=False, log=lambda m: None)
+
+    (capture.parent / "unavailable.txt").write_text("004.txt 007.txt\n")  # storage offline for two frames
+    cfg = tmp_path / "p.yaml"
+    entry = {**fakes.entry_points(), "preprocess": "test_pipeline_fakes:run_preprocess_partial"}
+    cfg.write_text(yaml.safe_dump({"entry_points": entry, "cluster": {"workers": 0}}))
+    work = WorkDir.at(tmp_path / "work")
+    args = ["run", str(capture), "--work", str(work.root), "--config", str(cfg), "--no-progress"]
+    assert cli_main(args) != 0  # exit codes tell the truth
+    err = capsys.readouterr().err
+    assert "preprocess incomplete: 2 expected output(s) missing (004.txt, 007.txt)" in err
+    rec = read_record(work, "preprocess")
+    assert rec["status"] == "incomplete" and rec["missing"] == ["004.txt", "007.txt"]
+    assert not work.calibration.exists() and read_record(work, "calibrate") is None  # nothing downstream ran
+    assert cli_main(args) != 0 and read_record(work, "preprocess")["status"] == "incomplete"  # still missing
+
+    (
+        capture.parent / "unavailable.txt"
+    ).unlink()  # the cause is fixed: the rerun redoes exactly what was missing
+    lines: list[str] = []
+    res = run_pipeline(work, load_pipeline_config(cfg), progress=False, log=lines.append)
+    assert statuses(res)["validate"] == "skipped" and statuses(res)["preprocess"] == "ran"
+    assert any("preprocess: running (retrying 2 missing output(s))" in line for line in lines)
+    rec = read_record(work, "preprocess")
+    assert rec["status"] == "done" and rec["summary"]["counts"] == {"done": 2, "skipped": 9, "errors": 1}
+    assert outputs(work.root) == outputs(ref.root)
+
+
+def test_stage_that_skips_its_expected_output_is_incomplete(tmp_path: Path, capture: Path) -> None:
+    entry = {**fakes.entry_points(), "calibrate": "test_pipeline_fakes:run_calibrate_nothing"}
+    cfg = PipelineConfig.from_dict({"entry_points": entry, "cluster": {"workers": 0}}, "test.yaml")
+    work = WorkDir.at(tmp_path / "work")
+    with pytest.raises(LightstageError, match=r"calibrate incomplete: 1 expected output\(s\) missing"):
+        run_pipeline(work, cfg, capture=capture, progress=False, log=lambda m: None)
+    rec = read_record(work, "calibrate")
+    assert rec["status"] == "incomplete" and rec["missing"] == [str(work.calibration)]
+    assert read_record(work, "preprocess")["status"] == "done"
+
+
 # ---- faults on a real LocalCluster -----------------------------------------------------------------------
 def test_worker_killed_mid_run_completes_with_identical_outputs(
     tmp_path: Path, capture: Path, kill_process_when

@@ -87,7 +87,11 @@ def _preprocess_one(item: tuple[str, str, int, float]) -> dict[str, Any]:
 
 
 def run_preprocess(
-    work: WorkDir, config: FakeConfig, executor: Executor | None = None, progress: bool = True
+    work: WorkDir,
+    config: FakeConfig,
+    executor: Executor | None = None,
+    progress: bool = True,
+    offline: frozenset[str] = frozenset(),
 ) -> dict:
     manifest = json.loads(work.manifest.read_text())
     out = work.preprocess_dir / "frames"
@@ -95,6 +99,7 @@ def run_preprocess(
     items = [
         (str(_capture(work) / "frames" / f), str(out / f), config.scale, config.delay)
         for f in manifest["frames"]
+        if f not in offline
     ]
     executor = executor or LoopExecutor()
     recs = executor.map(_preprocess_one, items, window=4, progress=progress, errors="return")
@@ -107,6 +112,29 @@ def run_preprocess(
         errors=errors,
         rejected=[e["frame"] for e in errors if isinstance(e, dict)],
     )
+
+
+def run_preprocess_partial(
+    work: WorkDir, config: FakeConfig, executor: Executor | None = None, progress: bool = True
+) -> dict:
+    """run_preprocess, except that frames named in unavailable.txt beside the capture (storage that is offline) are left
+    out and reported missing: the stage raises StageIncomplete."""
+    from lightstage.errors import StageIncomplete
+
+    listed = _capture(work).parent / "unavailable.txt"  # beside the capture: it is not part of it
+    offline = frozenset(listed.read_text().split()) if listed.is_file() else frozenset()
+    summary = run_preprocess(work, config, executor, progress, offline)
+    missing = sorted(offline & set(json.loads(work.manifest.read_text())["frames"]))
+    if missing:
+        raise StageIncomplete(f"preprocess: {len(missing)} frame(s) offline", missing, summary)
+    return summary
+
+
+def run_calibrate_nothing(
+    work: WorkDir, config: FakeConfig, executor: Executor | None = None, progress: bool = True
+) -> dict:
+    """A calibrate stage that returns without writing calibration.json."""
+    return _report(work, "calibrate", counts={})
 
 
 def _done_values(folder: Path) -> list[int]:
