@@ -16,7 +16,7 @@ import sys
 import time
 from pathlib import Path
 
-from lightstage.pipelines.cluster import dask_client
+from lightstage.pipelines.cluster import open_executor
 from lightstage.pipelines.config import load_pipeline_config
 from lightstage.pipelines.runner import run_pipeline
 from lightstage.pipelines.stages import BATCH_STAGES
@@ -45,14 +45,14 @@ def run_once(capture: Path, work_root: Path, workers: int, to_stage: str, config
     if work_root.exists():
         shutil.rmtree(work_root)
     config = load_pipeline_config(config_path or "default").with_cluster(workers=workers, dashboard="")
-    with dask_client(config.cluster, verbose=False) as client:
+    with open_executor(config.cluster, verbose=False) as executor:
         t0 = time.perf_counter()
         results = run_pipeline(
             WorkDir.at(work_root),
             config,
             capture=capture,
             to_stage=to_stage,
-            client=client,
+            executor=executor,
             progress=False,
             log=lambda m: print(f"  [{workers} worker(s)] {m}", file=sys.stderr),
         )

@@ -100,9 +100,7 @@ def test_real_stages_survive_a_killed_worker_with_identical_outputs(
 ) -> None:
     """A dask worker SIGKILLed while the real preprocess stage runs: the run completes (the task is retried on
     the restarted worker) and validate..shard outputs equal those of an uninterrupted in-process run."""
-    import os
-
-    from lightstage.pipelines.cluster import ClusterSettings, dask_client
+    from lightstage.executor import dask_executor
     from lightstage.pipelines.config import PipelineConfig
     from lightstage.pipelines.runner import run_pipeline
 
@@ -113,8 +111,8 @@ def test_real_stages_survive_a_killed_worker_with_identical_outputs(
 
     work = WorkDir.at(tmp_path / "work")
     frames = work.root / "preprocess" / "frames"
-    with dask_client(ClusterSettings(workers=2, dashboard=""), verbose=False) as client:
-        pids = sorted(client.run(os.getpid).values())
+    with dask_executor(workers=2, dashboard="", verbose=False) as executor:
+        pids = executor.worker_pids()
         ready = lambda: len(list(frames.rglob("*.exr"))) >= 8  # noqa: E731
         with kill_process_when(pids[0], ready, timeout_s=300) as killer:
             config = PipelineConfig.from_dict({"cluster": {"workers": 2}, **sections}, "work.yaml")
@@ -123,11 +121,11 @@ def test_real_stages_survive_a_killed_worker_with_identical_outputs(
                 config,
                 capture=tiny_capture,
                 to_stage="shard",
-                client=client,
+                executor=executor,
                 progress=False,
                 log=lambda m: None,
             )
-        after = sorted(client.run(os.getpid).values())
+        after = executor.worker_pids()
     assert killer.killed and pids[0] not in after  # a worker really died mid-preprocess and was replaced
     assert {r.stage: r.status for r in results}["preprocess"] == "ran"
     assert read_record(work, "preprocess")["errors"] == 0

@@ -170,10 +170,10 @@ def test_bounds_contain_the_object_and_are_tight(tmp_path):
     assert not run_bounds(work, BoundsConfig(resolution=40), progress=False)["skipped"]
 
 
-def _sharded_copy(root, config, client=None):
+def _sharded_copy(root, config, executor=None):
     work, _ = make_synthetic_work(root)
     run_split(work, SplitConfig("paper"), progress=False)
-    run_shard(work, config, client=client, progress=False)
+    run_shard(work, config, executor, progress=False)
     return load_manifest(work.shards_dir)
 
 
@@ -186,12 +186,12 @@ def test_parallel_local_pool_writes_identical_shards(sharded, tmp_path):
 
 @pytest.mark.slow
 def test_dask_client_writes_identical_shards(sharded, tmp_path):
-    from lightstage.pipelines.cluster import ClusterSettings, dask_client
+    from lightstage.executor import dask_executor
 
     work, _, _ = sharded
     ref = load_manifest(work.shards_dir)
-    with dask_client(ClusterSettings(workers=2, dashboard=":0"), verbose=False) as client:
-        m = _sharded_copy(tmp_path, CFG, client=client)
+    with dask_executor(workers=2, verbose=False) as executor:
+        m = _sharded_copy(tmp_path, CFG, executor)
     assert [s["sha256"] for s in m["shards"]] == [s["sha256"] for s in ref["shards"]]
 
 

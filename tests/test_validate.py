@@ -334,6 +334,8 @@ def test_header_parser_on_valid_layouts_and_every_truncation(tmp_path):
 
 def test_run_validate_on_dask_matches_local(bad_capture, tmp_path):
     distributed = pytest.importorskip("distributed")
+    from lightstage.executor import DaskExecutor
+
     work = WorkDir.at(tmp_path / "work")
     work.root.mkdir()
     work.capture_pointer.write_text(str(bad_capture))
@@ -341,7 +343,7 @@ def test_run_validate_on_dask_matches_local(bad_capture, tmp_path):
     with distributed.Client(
         processes=False, n_workers=1, threads_per_worker=2, dashboard_address=None
     ) as client:
-        summary = run_validate(work, cfg, client=client, progress=False)
+        summary = run_validate(work, cfg, DaskExecutor(client), progress=False)
     frames_ = {f["id"]: f["status"] for f in json.loads(work.manifest.read_text())["frames"]}
     assert len(frames_) == 12 and summary["bad"] == len(PLANTED)
     for fid, (_, want) in PLANTED.items():
