@@ -153,7 +153,7 @@ def test_rerun_is_skipped_and_corruption_detected(sharded, tmp_path):
 
 def test_cli_shard_and_bounds_errors(tmp_path, capsys):
     assert main(["shard", str(tmp_path / "nowork")]) == 2
-    assert "split" in capsys.readouterr().err
+    assert "nowork: work directory not found" in capsys.readouterr().err
 
 
 def test_bounds_contain_the_object_and_are_tight(tmp_path):
