@@ -128,7 +128,9 @@ def _check_dir(root: Path, create: bool) -> None:
     if root.is_dir():
         return
     if not create:
-        raise LightstageError(f"{root}: work directory not found")
+        raise LightstageError(
+            f"{root}: work directory not found (make one with: lightstage run CAPTURE --work {root})"
+        )
     try:
         root.mkdir(parents=True, exist_ok=True)
     except OSError as e:

@@ -86,7 +86,9 @@ def test_work_pointing_at_a_file_is_one_line(tmp_path: Path, capsys) -> None:
         assert line == f"lightstage: error: {afile}: not a directory (the work directory must be a folder)"
     assert afile.read_text() == "not a folder"
     assert cli_main(["train", str(tmp_path / "nowhere")]) == 2
-    assert one_error_line(capsys.readouterr().err).endswith("nowhere: work directory not found")
+    assert f"{tmp_path / 'nowhere'}: work directory not found (make one with" in one_error_line(
+        capsys.readouterr().err
+    )
     assert not (tmp_path / "nowhere").exists()  # a stage that needs WORK does not create it
 
 
