@@ -23,6 +23,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from lightstage.calibration.sfm_mapping import (
+    image_name,
+    incremental,
+    refine_from_initial,
+    reprojection_errors,
+)
 from lightstage.errors import LightstageError
 from lightstage.ids import ViewId
 
@@ -119,10 +125,6 @@ def view_pairs(
     ]
 
 
-def _image_name(view: ViewId) -> str:
-    return f"{view.camera}/{view.group}.png"
-
-
 def prepare_images(
     views: dict[ViewId, tuple[Path, Path]], image_dir: Path, mask_dir: Path, erode_px: int
 ) -> list[str]:
@@ -134,7 +136,7 @@ def prepare_images(
         else None
     )
     for view, (wellit, mask) in sorted(views.items()):
-        name = _image_name(view)
+        name = image_name(view)
         img = cv2.imread(str(wellit), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise LightstageError(f"{wellit}: cannot read the well-lit image of view {view}")
@@ -214,7 +216,7 @@ def _run_sfm(
     image_dir.mkdir(parents=True)
     mask_dir.mkdir(parents=True)
     names = prepare_images(views, image_dir, mask_dir, options.mask_erode_px)
-    by_name = {_image_name(v): v for v in views}
+    by_name = {image_name(v): v for v in views}
     cams_present = [c for c in camera_order if any(v.camera == c for v in views)]
     if not cams_present:
         raise LightstageError("SfM: no views to calibrate")
@@ -284,7 +286,7 @@ def _run_sfm(
         )
     else:
         pair_file = work_dir / "pairs.txt"
-        pair_file.write_text("".join(f"{_image_name(a)} {_image_name(b)}\n" for a, b in pairs))
+        pair_file.write_text("".join(f"{image_name(a)} {image_name(b)}\n" for a, b in pairs))
         pairing = pycolmap.ImportedPairingOptions()
         pairing.match_list_path = str(pair_file)
         pycolmap.match_image_pairs(
@@ -313,14 +315,14 @@ def _run_sfm(
     sparse_dir = work_dir / "sparse"
     sparse_dir.mkdir()
     if options.init == "nominal" and initial_poses is not None:
-        rec = _refine_from_initial(
+        rec = refine_from_initial(
             db_path, image_dir, sparse_dir, views, initial_poses, cams_present, camera_of, mapping, options
         )
         recs = {0: rec}
         t_map = time.perf_counter() - t0 - t_extract - t_match
         t_ba = 0.0
     else:
-        rec, recs, t_map, t_ba = _incremental(
+        rec, recs, t_map, t_ba = incremental(
             db_path, image_dir, sparse_dir, views, cams_present, mapping, options, t0 + t_extract + t_match
         )
 
@@ -365,7 +367,7 @@ def _run_sfm(
         T = frame.rig_from_world
         rig_from_world[groups.pop()] = (T.rotation.matrix(), np.asarray(T.translation))
 
-    errors = _reprojection_errors(rec)
+    errors = reprojection_errors(rec)
     track_lengths = np.array([p.track.length() for p in rec.points3D.values()]) if rec.num_points3D() else []
     stats = {
         "num_views": len(views),
@@ -400,164 +402,3 @@ def _run_sfm(
         f"mean track length {stats['mean_track_length']:.2f}"
     )
     return SfmResult(sensor_from_rig, rig_from_world, sorted(registered), unregistered, stats, rec)
-
-
-def _incremental(db_path, image_dir, sparse_dir, views, cams_present, mapping, options, t_start):
-    """COLMAP's incremental mapper without rig constraints, then the rig applied and bundle-adjusted."""
-    import time
-
-    import pycolmap
-
-    recs = pycolmap.incremental_mapping(db_path, image_dir, sparse_dir, options=mapping)
-    t_map = time.perf_counter() - t_start
-    if not recs:
-        raise LightstageError(
-            f"SfM failed: no reconstruction from {len(views)} views (too few matches on the foreground?); "
-            f"unregistered views: {_view_list(sorted(views))}"
-        )
-    rec = max(recs.values(), key=lambda r: r.num_reg_images())
-
-    # Pass 2 (COLMAP's documented two-pass rig workflow; its rig-aware incremental mapper stalled after two
-    # frames on turntable data): derive the rig (mean sensor-from-reference poses over the groups) from the
-    # unconstrained reconstruction, turn the images of a group into one rig frame, and bundle-adjust with the
-    # rig constraint. The first camera is the reference sensor.
-    reg_names = {rec.images[i].name for i in rec.reg_image_ids()}
-    lost = [c for c in cams_present if not any(n.startswith(c + "/") for n in reg_names)]
-    if lost:
-        raise LightstageError(
-            f"SfM failed: cameras {', '.join(lost)} have no registered view; unregistered views: "
-            f"{_view_list(sorted(v for v in views if _image_name(v) not in reg_names))}"
-        )
-    if options.use_rig:
-        rig_config = pycolmap.RigConfig()
-        rig_cams = []
-        for cid in cams_present:
-            rc = pycolmap.RigConfigCamera()
-            rc.image_prefix = f"{cid}/"
-            rc.ref_sensor = cid == cams_present[0]
-            rig_cams.append(rc)
-        rig_config.cameras = rig_cams
-        with pycolmap.Database.open(db_path) as db:
-            pycolmap.apply_rig_config([rig_config], db, rec)
-
-    if options.final_ba_iterations > 0:
-        pycolmap.bundle_adjustment(
-            rec, _ba_options(options, robust=False, iterations=options.final_ba_iterations)
-        )
-    t_ba = time.perf_counter() - t_start - t_map
-
-    return rec, recs, t_map, t_ba
-
-
-def _ba_options(options: SfmOptions, robust: bool, iterations: int):
-    import pycolmap
-
-    ba = pycolmap.BundleAdjustmentOptions()
-    ba.refine_focal_length = False
-    ba.refine_principal_point = False
-    ba.refine_extra_params = False
-    ba.refine_sensor_from_rig = options.refine_rig
-    ba.print_summary = options.verbose
-    if robust:
-        ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
-        ba.ceres.loss_function_scale = 1.0
-    so = ba.ceres.solver_options
-    so.max_num_iterations = iterations
-    so.function_tolerance = 1e-12
-    so.gradient_tolerance = 1e-12
-    so.parameter_tolerance = 1e-12
-    so.num_threads = options.num_threads
-    return ba
-
-
-def _refine_from_initial(
-    db_path, image_dir, sparse_dir, views, initial_poses, cams_present, camera_of, mapping, options
-):
-    """Rig-structured reconstruction from initial (nominal) poses: one rig (first camera = reference sensor,
-    initial relative poses), one frame per group; then rounds of triangulation from the database matches and
-    robust (Cauchy) bundle adjustment with shrinking reprojection thresholds."""
-    import pycolmap
-
-    rec = pycolmap.Reconstruction()
-    with pycolmap.Database.open(db_path) as db:
-        for cid in cams_present:
-            rec.add_camera_with_trivial_rig(db.read_camera(camera_of[cid]))
-        for image in db.read_all_images():
-            view = next(v for v in views if _image_name(v) == image.name)
-            kp = db.read_keypoints(image.image_id)[:, :2].astype(np.float64)
-            im = pycolmap.Image(
-                name=image.name, keypoints=kp, camera_id=image.camera_id, image_id=image.image_id
-            )
-            R, t = initial_poses[view]
-            rec.add_image_with_trivial_frame(
-                im, pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(R, float)), np.asarray(t, float))
-            )
-        if options.use_rig:
-            ref = cams_present[0]
-            ref_views = {v.group: initial_poses[v] for v in views if v.camera == ref}
-            rig_config = pycolmap.RigConfig()
-            rig_cams = []
-            for cid in cams_present:
-                rc = pycolmap.RigConfigCamera()
-                rc.image_prefix = f"{cid}/"
-                rc.ref_sensor = cid == ref
-                if cid != ref:
-                    # cam_from_ref averaged over groups is exact for a rigid nominal rig; take any group.
-                    v = next(v for v in views if v.camera == cid and v.group in ref_views)
-                    R, t = initial_poses[v]
-                    R0, t0 = ref_views[v.group]
-                    Rr = np.asarray(R) @ np.asarray(R0).T
-                    rc.cam_from_rig = pycolmap.Rigid3d(
-                        pycolmap.Rotation3d(Rr), np.asarray(t) - Rr @ np.asarray(t0)
-                    )
-                rig_cams.append(rc)
-            rig_config.cameras = rig_cams
-            pycolmap.apply_rig_config([rig_config], db, rec)
-    rounds = max(1, options.refine_rounds)
-    thresholds = np.geomspace(options.initial_max_reproj_px, options.final_max_reproj_px, rounds)
-    for thr in thresholds:
-        tri = mapping.triangulation
-        tri.create_max_angle_error = max(2.0, float(thr))
-        tri.continue_max_angle_error = max(2.0, float(thr))
-        tri.merge_max_reproj_error = float(thr)
-        tri.complete_max_reproj_error = float(thr)
-        tri.min_angle = 1.0
-        mapping.mapper.filter_max_reproj_error = float(thr)
-        rec = pycolmap.triangulate_points(
-            rec, db_path, image_dir, sparse_dir, clear_points=True, options=mapping
-        )
-        if rec.num_points3D() == 0:
-            return rec
-        pycolmap.bundle_adjustment(
-            rec, _ba_options(options, robust=True, iterations=options.round_ba_iterations)
-        )
-    # The last round is robust too: plain least squares let outlier tracks pull the weakly constrained rig.
-    pycolmap.bundle_adjustment(rec, _ba_options(options, robust=True, iterations=options.final_ba_iterations))
-    return rec
-
-
-def _reprojection_errors(rec) -> np.ndarray:
-    """Per-observation reprojection errors (pixels) of a reconstruction."""
-    errs = []
-    for image in rec.images.values():
-        if not image.has_pose:
-            continue
-        cam = image.camera
-        T = image.cam_from_world()
-        R, t = T.rotation.matrix(), np.asarray(T.translation)
-        pts2d, pts3d = [], []
-        for p in image.points2D:
-            if p.has_point3D():
-                pts2d.append(p.xy)
-                pts3d.append(rec.points3D[p.point3D_id].xyz)
-        if not pts2d:
-            continue
-        xc = np.asarray(pts3d) @ R.T + t
-        proj = cam.img_from_cam(xc)
-        errs.append(np.linalg.norm(np.asarray(proj) - np.asarray(pts2d), axis=1))
-    return np.concatenate(errs) if errs else np.zeros(0)
-
-
-def _view_list(views: list[ViewId], limit: int = 40) -> str:
-    names = [str(v) for v in views]
-    return ", ".join(names[:limit]) + (f" (+{len(names) - limit} more)" if len(names) > limit else "")
