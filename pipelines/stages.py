@@ -100,9 +100,7 @@ STAGES: tuple[StageSpec, ...] = (
         _paths("calibration"),
         report="calibration",
     ),
-    StageSpec(
-        "split", run_split, SplitConfig, (CAPTURE, "preprocess"), _paths("split"), _paths("split")
-    ),
+    StageSpec("split", run_split, SplitConfig, (CAPTURE, "preprocess"), _paths("split"), _paths("split")),
     StageSpec(
         "bounds",
         run_bounds,

@@ -68,14 +68,31 @@ def test_external_scheduler_with_a_killed_worker_matches_a_local_run(
     try:
         start(
             "scheduler",
-            [*dask, "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
+            [
+                *dask,
+                "distributed.cli.dask_scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                str(port),
+                "--no-dashboard",
+            ],
         )
         workers = [
             start(
                 f"worker{i}",
                 [
-                    *dask, "distributed.cli.dask_worker", address, "--nthreads", "1", "--no-nanny",
-                    "--host", "127.0.0.1", "--no-dashboard", "--memory-limit", "2GiB",
+                    *dask,
+                    "distributed.cli.dask_worker",
+                    address,
+                    "--nthreads",
+                    "1",
+                    "--no-nanny",
+                    "--host",
+                    "127.0.0.1",
+                    "--no-dashboard",
+                    "--memory-limit",
+                    "2GiB",
                 ],
             )  # fmt: skip
             for i in range(2)
