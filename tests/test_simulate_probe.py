@@ -15,8 +15,8 @@ from lightstage.capture.probe import PROBE_FILE, ProbeInfo, load_probe_info, sav
 from lightstage.errors import LightstageError
 from lightstage.frames import read_exr, read_exr_header
 from lightstage.rig import group_transform
-from lightstage.simulator.probe import (
-    ProbeSettings,
+from lightstage.simulator.probe import ProbeSettings
+from lightstage.simulator.probe_optics import (
     ball_centre_rig,
     probe_base_images,
     render_probe_olat,
