@@ -371,7 +371,15 @@ def resolve(
         "light_rule": protocol.light_rule,
         "requested": protocol.parameters,
     }
-    split = Split(protocol.name, params, "; ".join(rules), StageInfo.of(stage), train, test, src)
+    split = Split(
+        protocol.name,
+        params,
+        "; ".join(rules),
+        StageInfo(stage.name, tuple(stage.camera_ids), len(stage.lights), tuple(stage.group_names)),
+        train,
+        test,
+        src,
+    )
     validate_split(split)
     return split
 

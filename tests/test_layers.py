@@ -100,7 +100,7 @@ def import_graph(planted: dict[str, str] | None = None, typing: bool = True) -> 
     files = [p for folder, _ in LAYERS for p in (REPO / folder).rglob("*.py")]
     modules = {module_name(p) for p in files} | {name for _, name in LAYERS}
     return {
-        module_name(p): first_party_imports(p, modules, planted.get(str(p.relative_to(REPO)), ""))
+        module_name(p): first_party_imports(p, modules, planted.get(str(p.relative_to(REPO)), ""), typing)
         for p in files
     }
 

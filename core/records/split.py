@@ -13,7 +13,6 @@ from pathlib import Path
 from typing import Any
 
 from lightstage.atomic import write_text_atomic
-from lightstage.capture.stage import Stage
 from lightstage.config import check_keys
 from lightstage.errors import LightstageError
 from lightstage.ids import FrameId, ViewId
@@ -89,10 +88,6 @@ class StageInfo:
     camera_ids: tuple[str, ...]
     num_lights: int
     groups: tuple[str, ...]
-
-    @classmethod
-    def of(cls, stage: Stage) -> StageInfo:
-        return cls(stage.name, tuple(stage.camera_ids), len(stage.lights), tuple(stage.group_names))
 
     def to_dict(self) -> dict[str, Any]:
         return {
