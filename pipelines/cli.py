@@ -30,7 +30,6 @@ COMMAND_MODULES = (
     "lightstage.calibration.cli",
     "lightstage.dataset.cli",
     "lightstage.training.cli",
-    "lightstage.training.use_cli",
     "lightstage.pipelines.commands",
 )
 

@@ -13,7 +13,7 @@ from lightstage.calibration.probe import ProbeData, fit_ball_cone, probe_rays
 from lightstage.cameras import camera_center, look_at
 from lightstage.errors import LightstageError
 from lightstage.preprocess.probe import ball_highlight, ball_outline
-from lightstage.simulator.probe import specular_point
+from lightstage.simulator.probe_optics import specular_point
 
 F = 2000.0
 K = np.array([[F, 0, 384.0], [0, F, 256.0], [0, 0, 1]])
