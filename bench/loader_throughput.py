@@ -72,7 +72,8 @@ def shard_speed(tmp: Path, width: int = 2048, height: int = 1366, lights: int = 
     """Seconds per training frame of `run_shard` (phase A + B, in-process) at the paper's processed resolution."""
     from support.fixtures import make_synthetic_work
 
-    from lightstage.dataset.shards import ShardConfig, run_shard
+    from lightstage.dataset.shard_config import ShardConfig
+    from lightstage.dataset.shards import run_shard
     from lightstage.dataset.split import SplitConfig, run_split
 
     work, _ = make_synthetic_work(

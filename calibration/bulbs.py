@@ -193,8 +193,7 @@ def find_bulbs(
     camera's image are read; a disc farther than `max_offset_px` (processed pixels) from there is not the bulb.
     See `combine_discs` for how the groups' discs make one sighting.
     """
-    from lightstage.preprocess.segment import read_mask
-    from lightstage.records.processed import read_processed
+    from lightstage.records.processed import read_mask, read_processed
 
     stage = capture.stage
     w, h = stage.width // DOWNSCALE, stage.height // DOWNSCALE

@@ -17,6 +17,7 @@ from lightstage.config import load, require
 from lightstage.errors import LightstageError
 from lightstage.executor import Executor
 from lightstage.ids import ViewId
+from lightstage.records.processed import read_mask
 from lightstage.workdir import WorkDir
 
 BOUNDS_FORMAT_VERSION = 1
@@ -113,28 +114,6 @@ def load_bounds(path: str | Path) -> Bounds:
         raise LightstageError(f"{path}: cannot read bounds ({e.strerror}); run `lightstage bounds`") from None
     except (KeyError, TypeError, ValueError) as e:
         raise LightstageError(f"{path}: malformed bounds ({type(e).__name__}: {e})") from None
-
-
-def read_label_png(path: Path) -> np.ndarray:
-    """A single-channel 8-bit PNG (mask or zone map) as uint8 (H, W), exact values (OpenCV, no rescaling)."""
-    import cv2
-
-    if not path.is_file():
-        raise LightstageError(f"{path}: missing (run `lightstage preprocess`)")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise LightstageError(f"{path}: unreadable PNG")
-    if img.ndim == 3:
-        img = img[..., 0]
-    if img.dtype != np.uint8:
-        img = np.clip(img, 0, 255).astype(np.uint8)
-    return img
-
-
-def read_mask(path: Path) -> np.ndarray:
-    """Foreground mask as bool: 0/1 or 0/255 PNGs are both accepted."""
-    m = read_label_png(path)
-    return m > (127 if m.max() > 1 else 0)
 
 
 @dataclass

@@ -73,7 +73,8 @@ def _bounds(args: argparse.Namespace) -> int:
 
 
 def _shard(args: argparse.Namespace) -> int:
-    from lightstage.dataset.shards import ShardConfig, run_shard, verify_shards
+    from lightstage.dataset.shard_config import ShardConfig
+    from lightstage.dataset.shards import run_shard, verify_shards
     from lightstage.workdir import WorkDir
 
     work = WorkDir.at(args.work)

@@ -51,8 +51,9 @@ def write_previews(
     (sfm_mask.png) for every finished view, with one exposure for the whole capture per kind of image (and
     WORK/preprocess/sfm_images.json); views whose previews already use those exposures are skipped."""
     from lightstage.frames import read_exr, write_image
-    from lightstage.preprocess.segment import overlay, read_mask, zone_map
+    from lightstage.preprocess.segment import overlay, zone_map
     from lightstage.preprocess.sfm_image import sfm_image_factor, spread_lights, upsample_mask
+    from lightstage.records.processed import read_mask
     from lightstage.tonemap import tonemap_u8
 
     def auto(levels: list[float]) -> float:

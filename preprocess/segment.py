@@ -24,12 +24,10 @@ an option. `mask_flags` says when a mask looks wrong (touching most of the borde
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
 import numpy as np
 
-from lightstage.errors import LightstageError
 from lightstage.preprocess.config import PreprocessConfig
 from lightstage.preprocess.stats import ViewStats
 from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND
@@ -352,15 +350,3 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
     """Intersection over union of two bool masks (1.0 when both are empty)."""
     union = np.count_nonzero(a | b)
     return float(np.count_nonzero(a & b) / union) if union else 1.0
-
-
-def read_mask(path: str | os.PathLike[str]) -> np.ndarray:
-    """A mask PNG (0/255 or 0/1) as bool (h, w)."""
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise LightstageError(f"{path}: unreadable mask PNG")
-    if img.ndim == 3:
-        img = img[..., 0]
-    return img > (127 if img.max() > 1 else 0)

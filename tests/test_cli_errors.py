@@ -18,7 +18,8 @@ import yaml
 from support.fixtures import make_synthetic_work
 from support.training import micro_config
 
-from lightstage.dataset.shards import ShardConfig, run_shard
+from lightstage.dataset.shard_config import ShardConfig
+from lightstage.dataset.shards import run_shard
 from lightstage.dataset.split import SplitConfig, run_split
 from lightstage.pipelines.cli import main as cli_main
 from lightstage.training.checkpoint import CHECKPOINT_NAME, load_checkpoint

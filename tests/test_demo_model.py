@@ -8,7 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from lightstage.dataset.shards import ShardConfig, run_shard
+from lightstage.dataset.shard_config import ShardConfig
+from lightstage.dataset.shards import run_shard
 from lightstage.dataset.split import SplitConfig, run_split
 from lightstage.training.config import load_config
 from lightstage.training.evaluate import run_eval

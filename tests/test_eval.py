@@ -241,7 +241,8 @@ def test_cli_train_and_eval_on_dataset_shards(tmp_path):
     import yaml
     from support.fixtures import make_synthetic_work
 
-    from lightstage.dataset.shards import ShardConfig, run_shard
+    from lightstage.dataset.shard_config import ShardConfig
+    from lightstage.dataset.shards import run_shard
     from lightstage.dataset.split import SplitConfig, run_split
     from lightstage.pipelines.cli import main
 

@@ -10,7 +10,8 @@ import torch
 from support.fixtures import make_synthetic_work
 
 from lightstage.dataset.loader import RayLoader, RayShardDataset
-from lightstage.dataset.shards import ShardConfig, run_shard
+from lightstage.dataset.shard_config import ShardConfig
+from lightstage.dataset.shards import run_shard
 from lightstage.dataset.split import SplitConfig, run_split
 from lightstage.errors import LightstageError
 from lightstage.records.shards import BATCH_KEYS, load_manifest

@@ -11,7 +11,9 @@ from support.fixtures import SPHERE_CENTRE, SPHERE_RADIUS, make_synthetic_work
 
 from lightstage.cameras import pixel_rays
 from lightstage.dataset.bounds import BoundsConfig, load_bounds, run_bounds
-from lightstage.dataset.shards import ShardConfig, run_shard, sampling_zones, verify_shards, view_rays
+from lightstage.dataset.shard_config import ShardConfig
+from lightstage.dataset.shard_rays import sampling_zones, view_rays
+from lightstage.dataset.shards import run_shard, verify_shards
 from lightstage.dataset.split import SplitConfig, run_split
 from lightstage.errors import LightstageError
 from lightstage.frames import read_exr
@@ -281,7 +283,7 @@ def test_bounds_recomputed_when_masks_change(tmp_path):
 @pytest.mark.parametrize("size", [(48, 32), (32, 48), (40, 40)])
 @pytest.mark.parametrize("border", [0, 3])
 def test_border_ring_enumerates_every_outside_pixel_once(size, border):
-    from lightstage.dataset.shards import border_geometry, border_pixels, ring_size
+    from lightstage.dataset.shard_rays import border_geometry, border_pixels, ring_size
 
     w, h = size
     pad = border_geometry(w, h, ShardConfig(border_px=border))
