@@ -22,7 +22,8 @@ from lightstage.calibration.config import CalibrateConfig
 from lightstage.calibration.run import run_calibrate
 from lightstage.capture.validate import ValidateConfig, run_validate
 from lightstage.dataset.bounds import BoundsConfig, run_bounds
-from lightstage.dataset.shards import ShardConfig, run_shard
+from lightstage.dataset.shard_config import ShardConfig
+from lightstage.dataset.shards import run_shard
 from lightstage.dataset.split import SplitConfig, run_split
 from lightstage.errors import LightstageError
 from lightstage.preprocess.config import PreprocessConfig
