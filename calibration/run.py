@@ -204,13 +204,11 @@ def _sfm_calibration(
         )
         + "), placed at that group's nominal yaw about the fitted axis",
     }
-    points = colors = None
+    from lightstage.calibration.export import sfm_tracks
+
     rec = result.reconstruction
-    if rec is not None and rec.num_points3D():
-        xyz = np.stack([p.xyz for p in rec.points3D.values()])
-        points = reg.world_from_sfm.apply(xyz)
-        colors = np.stack([p.color for p in rec.points3D.values()])
-    return calib, stats, (points, colors)
+    tracks = sfm_tracks(rec, reg.world_from_sfm, f / DOWNSCALE) if rec is not None else None
+    return calib, stats, tracks
 
 
 def run_calibrate(
@@ -262,16 +260,16 @@ def run_calibrate(
         "warnings": [],
     }
     try:
-        points = colors = None
+        tracks = None
         if config.method == "nominal":
             calib = nominal_calibration(stage, intr if config.intrinsics else None)
             stats: dict[str, Any] = {"num_views": len(calib.views), "num_registered": len(calib.views)}
         else:
-            calib, stats, (points, colors) = _sfm_calibration(work, capture, config, intr, log, progress)
+            calib, stats, tracks = _sfm_calibration(work, capture, config, intr, log, progress)
         report["warnings"].extend(stats.pop("warnings", []))
         report["sfm" if config.method == "sfm" else "nominal"] = stats
         calib.save(work.calibration)
-        write_colmap_model(calib, work.calibration_dir / "colmap", points, colors)
+        report["colmap"] = write_colmap_model(calib, work.calibration_dir / "colmap", tracks, work)
         write_transforms(calib, work.calibration_dir / "transforms.json", work)
         plot_layout(calib, work.calibration_dir / "layout.png")
         gt = GroundTruth.of(capture.root).geometry
