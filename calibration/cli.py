@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from lightstage.cli_args import add_quiet
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add this package's subcommands."""
@@ -19,7 +21,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--intrinsics", help="intrinsics JSON from `lightstage calibrate-intrinsics`")
     p.add_argument("--threads", type=int, default=2, help="pycolmap threads (default 2)")
     p.add_argument("--keep-sfm", action="store_true", help="keep WORK/calibration/sfm (images, database)")
-    p.add_argument("--quiet", action="store_true", help="less output")
+    add_quiet(p)
     p.set_defaults(func=_calibrate)
 
     q = subparsers.add_parser(

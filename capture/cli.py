@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from lightstage.cli_args import add_quiet
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add `stage` and `capture` subcommands."""
@@ -68,7 +70,7 @@ def register_capture(subparsers: argparse._SubParsersAction) -> None:
     val.add_argument(
         "--timeout", type=float, default=None, help="seconds allowed to decode one file (--deep; default 300)"
     )
-    val.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_quiet(val)
     val.set_defaults(func=_capture_validate)
 
 

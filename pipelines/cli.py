@@ -20,6 +20,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from lightstage import __version__
+from lightstage.cli_args import apply_conventions
 from lightstage.errors import LightstageError
 
 # The packages that contribute subcommands, in the order of the pipeline.
@@ -65,6 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(subparsers)
+    apply_conventions(parser)
     return parser
 
 

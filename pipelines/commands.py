@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from lightstage.cli_args import add_quiet
+
 # pipelines.stages.STAGE_ORDER, spelled out so `lightstage --help` need not import every stage (a test checks)
 STAGES = ("validate", "preprocess", "calibrate", "split", "bounds", "shard", "train", "eval")
 
@@ -40,7 +42,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     run.add_argument(
         "--clean", action="store_true", help="with --from/--only: remove the forced stages' outputs first"
     )
-    run.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_quiet(run)
     run.set_defaults(func=_run, resolve_work=_run_work)
 
     demo = subparsers.add_parser(
@@ -56,7 +58,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     demo.add_argument("--seed", type=int, help="simulator seed (default: the demo config's)")
     demo.add_argument("--workers", type=int, help="worker processes of the local cluster")
     demo.add_argument("--scheduler", help="address of an existing dask scheduler")
-    demo.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_quiet(demo)
     demo.set_defaults(func=_demo)
 
     cfg = subparsers.add_parser("config", help="show the effective pipeline config")
@@ -107,7 +109,7 @@ def _run(args: argparse.Namespace) -> int:
         only=args.only,
         to_stage=args.to_stage,
         clean=args.clean,
-        progress=not args.no_progress,
+        progress=not args.quiet,
     )
     print(f"pipeline finished in {work} (records in {WorkDir.at(work).root / 'reports'}):")
     for r in results:
@@ -126,7 +128,7 @@ def _demo(args: argparse.Namespace) -> int:
         seed=args.seed,
         workers=args.workers,
         scheduler=args.scheduler,
-        progress=not args.no_progress,
+        progress=not args.quiet,
     )
     return 0
 

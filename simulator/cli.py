@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from lightstage.cli_args import add_quiet
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the `simulate` subcommand."""
@@ -28,7 +30,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "LEDs, dark-albedo patches; clean: the old dark, clean render (default: the preset's; small: stage)",
     )
     p.add_argument("--no-probe", action="store_true", help="skip the mirror-ball light-probe frames (probe/)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_quiet(p)
     p.set_defaults(func=_simulate)
 
 

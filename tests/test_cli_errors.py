@@ -62,9 +62,7 @@ def write_config(path: Path, steps: int = 2, **changes) -> Path:
 
 
 def train(work: WorkDir, config: Path, *extra: str) -> int:
-    return cli_main(
-        ["train", str(work.root), "--config", str(config), "--device", "cpu", "--no-progress", *extra]
-    )
+    return cli_main(["train", str(work.root), "--config", str(config), "--device", "cpu", "--quiet", *extra])
 
 
 # ---- the work directory ----------------------------------------------------------------------------------
@@ -166,7 +164,7 @@ def test_real_full_disk_during_previews_is_one_line(work: WorkDir, tmp_path: Pat
     )
     config = write_config(tmp_path / "micro.yaml")
     cmd = [sys.executable, "-m", "lightstage.pipelines.cli", "train", str(work.root), "--config", str(config)]
-    cmd += ["--device", "cpu", "--no-progress"]
+    cmd += ["--device", "cpu", "--quiet"]
     proc = subprocess.run(
         ["unshare", "--mount", "sh", "-c", script, "sh", str(previews), *cmd], capture_output=True, text=True
     )

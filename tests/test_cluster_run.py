@@ -48,7 +48,7 @@ def test_external_scheduler_with_a_killed_worker_matches_a_local_run(
     local = tmp_path / "local"
     proc = lightstage(
         "run", str(tiny_capture), "--work", str(local), "--config", str(cfg), "--to", "shard", "--workers", "0",
-        "--no-progress", env=env,
+        "--quiet", env=env,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
 
@@ -110,7 +110,7 @@ def test_external_scheduler_with_a_killed_worker_matches_a_local_run(
         with kill_process_when(workers[0].pid, mid_preprocess, timeout_s=120) as killer:
             proc = lightstage(
                 "run", str(tiny_capture), "--work", str(work), "--config", str(cfg), "--to", "shard",
-                "--scheduler", address, "--no-progress", env=env,
+                "--scheduler", address, "--quiet", env=env,
             )  # fmt: skip
         assert proc.returncode == 0, proc.stderr[-3000:]
         assert killer.killed and workers[0].wait(timeout=30) == -9

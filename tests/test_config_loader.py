@@ -300,5 +300,5 @@ def test_run_to_validate_with_a_clean_config_runs(tmp_path: Path, tiny_capture: 
     config = tmp_path / "p.yaml"
     config.write_text("cluster: {workers: 0}\ntrain:\n  config: tiny\n  optim: {lr: 0.01}\n")
     argv = ["run", str(tiny_capture), "--work", str(work), "--config", str(config), "--to", "validate"]
-    assert cli_main([*argv, "--no-progress"]) == 0
+    assert cli_main([*argv, "--quiet"]) == 0
     assert (work / "manifest.json").is_file()

@@ -253,7 +253,7 @@ def test_cli_train_and_eval_on_dataset_shards(tmp_path):
     cfg["optim"]["batch_rays"] = 64
     cfg["eval"].update(every=2, images=1, max_images=2)
     (tmp_path / "micro.yaml").write_text(yaml.safe_dump(cfg))
-    args = [str(work.root), "--config", str(tmp_path / "micro.yaml"), "--device", "cpu", "--no-progress"]
+    args = [str(work.root), "--config", str(tmp_path / "micro.yaml"), "--device", "cpu", "--quiet"]
     assert main(["train", *args]) == 0
     report = json.loads(work.report("train").read_text())
     assert report["steps"] == 3 and np.isfinite(report["final_loss"])
@@ -267,7 +267,7 @@ def test_cli_train_and_eval_on_dataset_shards(tmp_path):
     assert [e["step"] for e in evals] == [2, 4, 5, 6]  # every 2 up to 3, then every step: kept over resumes
     times = [e["train_seconds"] for e in evals]
     assert times == sorted(times) and times[0] > 0  # cumulative optimiser time, for time-to-PSNR
-    assert main(["eval", str(work.root), "--device", "cpu", "--no-progress"]) == 0
+    assert main(["eval", str(work.root), "--device", "cpu", "--quiet"]) == 0
     ev = json.loads(work.report("eval").read_text())
     assert ev["count"] == 2 and ev["lpips"] == "unavailable"
     assert main(["train", str(work.root), "--config", "nonexistent.yaml"]) == 2

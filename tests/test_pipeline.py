@@ -150,7 +150,7 @@ def test_cli_run_capture_and_work(tmp_path: Path, capture: Path, monkeypatch) ->
     cfg = tmp_path / "p.yaml"
     cfg.write_text(yaml.safe_dump({"entry_points": fakes.entry_points()}))
     work = tmp_path / "work"
-    args = ["run", str(capture), "--work", str(work), "--config", str(cfg), "--workers", "0", "--no-progress"]
+    args = ["run", str(capture), "--work", str(work), "--config", str(cfg), "--workers", "0", "--quiet"]
     assert cli_main(args) == 0
     assert read_record(WorkDir.at(work), "eval")["status"] == "done"
     assert cli_main(["run", str(capture), "--config", str(cfg)]) == 2  # no --work: one-line error
@@ -168,7 +168,7 @@ def test_stage_with_missing_outputs_fails_is_not_done_and_is_retried(
     entry = {**fakes.entry_points(), "preprocess": "test_pipeline_fakes:run_preprocess_partial"}
     cfg.write_text(yaml.safe_dump({"entry_points": entry, "cluster": {"workers": 0}}))
     work = WorkDir.at(tmp_path / "work")
-    args = ["run", str(capture), "--work", str(work.root), "--config", str(cfg), "--no-progress"]
+    args = ["run", str(capture), "--work", str(work.root), "--config", str(cfg), "--quiet"]
     assert cli_main(args) != 0  # exit codes tell the truth
     err = capsys.readouterr().err
     assert "preprocess incomplete: 2 expected output(s) missing (004.txt, 007.txt)" in err
@@ -253,7 +253,7 @@ def test_whole_run_killed_resumes_to_identical_outputs(tmp_path: Path) -> None:
         )
     )
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])}
-    cmd = [sys.executable, "-m", "lightstage.pipelines.cli", "run", str(cfg), "--no-progress"]
+    cmd = [sys.executable, "-m", "lightstage.pipelines.cli", "run", str(cfg), "--quiet"]
     proc = subprocess.Popen(
         cmd, env=env, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
     )

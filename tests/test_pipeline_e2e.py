@@ -47,7 +47,7 @@ def test_run_tiny_capture_through_eval_with_a_corrupt_frame(tiny_capture: Path, 
             }
         )
     )
-    assert cli_main(["run", str(cfg), "--no-progress"]) == 0
+    assert cli_main(["run", str(cfg), "--quiet"]) == 0
     w = WorkDir.at(work)
     for stage in STAGE_ORDER:
         rec = read_record(w, stage)
@@ -68,7 +68,7 @@ def test_run_tiny_capture_through_eval_with_a_corrupt_frame(tiny_capture: Path, 
 
     # A rerun with nothing changed skips every stage.
     before = {s: read_record(w, s)["finished"] for s in STAGE_ORDER}
-    assert cli_main(["run", str(cfg), "--no-progress"]) == 0
+    assert cli_main(["run", str(cfg), "--quiet"]) == 0
     assert {s: read_record(w, s)["finished"] for s in STAGE_ORDER} == before
 
 

@@ -170,7 +170,7 @@ def pipeline_config(tmp_path_factory) -> Path:
 def reference(tiny_capture: Path, pipeline_config: Path, tmp_path_factory) -> dict[str, str]:
     work = tmp_path_factory.mktemp("ref") / "work"
     args = ["run", str(tiny_capture), "--work", str(work), "--config", str(pipeline_config)]
-    assert cli_main([*args, "--to", "shard", "--no-progress"]) == 0
+    assert cli_main([*args, "--to", "shard", "--quiet"]) == 0
     return listing(work)
 
 
@@ -183,7 +183,7 @@ def test_second_run_is_refused_and_the_first_ends_identical_to_a_reference(
     tiny_capture: Path, pipeline_config: Path, reference: dict[str, str], tmp_path: Path
 ) -> None:
     work = tmp_path / "work"
-    cmd = [*run_command(tiny_capture, work, pipeline_config), "--no-progress"]
+    cmd = [*run_command(tiny_capture, work, pipeline_config), "--quiet"]
     first = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         holds = lambda: (h := read_holder(work)) is not None and h.pid == first.pid  # noqa: E731
@@ -212,7 +212,7 @@ def test_killed_run_is_taken_over_and_its_leftovers_removed(
     tiny_capture: Path, pipeline_config: Path, reference: dict[str, str], tmp_path: Path
 ) -> None:
     work = WorkDir.at(tmp_path / "work")
-    cmd = [*run_command(tiny_capture, work.root, pipeline_config), "--no-progress"]
+    cmd = [*run_command(tiny_capture, work.root, pipeline_config), "--quiet"]
     run = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     frames = work.preprocess_dir / "frames"
     wait_for(lambda: frames.is_dir() and any(frames.rglob("*.exr")), run)

@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from lightstage.cli_args import add_device, add_quiet
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add `lightstage train` and `lightstage eval`."""
@@ -19,7 +21,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="paper | paper-lite | fast | cpu | tiny | a YAML file (default: paper)",
     )
     p.add_argument("--steps", type=int, default=None, help="total optimiser steps (overrides the config)")
-    p.add_argument("--device", default="auto", help="cpu | cuda | auto (default)")
+    add_device(p)
     p.add_argument(
         "--stop-at",
         type=int,
@@ -29,13 +31,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--eval-every", type=int, default=None, help="steps between test-PSNR previews (overrides the config)"
     )
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_quiet(p)
     p.set_defaults(func=_train)
 
     e = subparsers.add_parser("eval", help="score the trained model on the test split (reports/eval.json)")
     e.add_argument("work", help="work directory")
     e.add_argument("--checkpoint", default=None, help="checkpoint file (default: WORK/train/checkpoint.pt)")
-    e.add_argument("--device", default="auto", help="cpu | cuda | auto (default)")
+    add_device(e)
     e.add_argument("--max-images", type=int, default=None, help="score only the first N test images")
     e.add_argument(
         "--lpips-weights",
@@ -47,7 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         help="LPIPS linear layers (.pth; default: the ones shipped in the lpips package)",
     )
-    e.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_quiet(e)
     e.set_defaults(func=_eval)
     p = subparsers.add_parser(
         "relight",
@@ -110,7 +112,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--chunk", type=int, default=262144, help="points per density query")
     p.add_argument("--checkpoint", default=None, help="checkpoint file (default: the latest)")
-    p.add_argument("--device", default="auto", help="auto (cuda when available), cpu or cuda")
+    add_device(p)
     p.add_argument("--out", required=True, help="output mesh, a .ply file (binary PLY)")
     p.set_defaults(func=_mesh)
 
@@ -139,7 +141,7 @@ def _train(args: argparse.Namespace) -> int:
     summary = run_train(
         WorkDir.at(args.work),
         config,
-        progress=not args.no_progress,
+        progress=not args.quiet,
         device=args.device,
         stop_at=args.stop_at,
     )
@@ -171,7 +173,7 @@ def _eval(args: argparse.Namespace) -> int:
     summary = run_eval(
         work,
         dataclasses.replace(cfg, **changes),
-        progress=not args.no_progress,
+        progress=not args.quiet,
         checkpoint=args.checkpoint,
         device=str(device),
     )
@@ -183,7 +185,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--downscale", type=int, default=1, help="render at 1/N of the camera's resolution")
     p.add_argument("--exposure", type=float, default=None, help="preview exposure (default: auto, 99th pct)")
     p.add_argument("--checkpoint", default=None, help="checkpoint file (default: the latest)")
-    p.add_argument("--device", default="cpu", help="torch device for the model (cpu, cuda)")
+    add_device(p, default="cpu")
     p.add_argument(
         "--light-distance",
         type=float,
