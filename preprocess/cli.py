@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from lightstage.cli_args import add_quiet
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add `preprocess`."""
@@ -29,7 +31,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--threads", type=int, default=0, help="library threads when running in-process (0: all cores)"
     )
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_quiet(p)
     p.set_defaults(func=_preprocess)
 
 
@@ -68,7 +70,7 @@ def _preprocess(args: argparse.Namespace) -> int:
         raise LightstageError(f"--workers: expected an integer >= 0, got {args.workers}")
     work = WorkDir.at(args.work)
     work.link_capture(capture.root)
-    progress = not args.no_progress
+    progress = not args.quiet
     if args.workers or args.scheduler:
         from lightstage.executor import dask_executor
 

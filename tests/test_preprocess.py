@@ -424,7 +424,7 @@ def test_killed_run_resumes_with_identical_outputs(tiny_capture: Path, tmp_path:
     cmd = [sys.executable, "-m", "lightstage.pipelines.cli", "preprocess", str(cap), "--config", str(config)]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     killed = WorkDir.at(tmp_path / "killed")
-    proc = subprocess.Popen([*cmd, "--work", str(killed.root), "--no-progress"], env=env)
+    proc = subprocess.Popen([*cmd, "--work", str(killed.root), "--quiet"], env=env)
     deadline = time.time() + 120
     try:
         while time.time() < deadline and proc.poll() is None:
@@ -439,16 +439,12 @@ def test_killed_run_resumes_with_identical_outputs(tiny_capture: Path, tmp_path:
     assert not killed.report("preprocess").exists()
     n_before = len(list((killed.preprocess_dir / "frames").rglob("[0-9]*.exr")))
     assert 0 < n_before < 48
-    subprocess.run(
-        [*cmd, "--work", str(killed.root), "--no-progress"], env=env, check=True, capture_output=True
-    )
+    subprocess.run([*cmd, "--work", str(killed.root), "--quiet"], env=env, check=True, capture_output=True)
     report = json.loads(killed.report("preprocess").read_text())
     assert report["counts"]["reused"] + report["counts"]["processed"] <= 48
     assert report["counts"]["processed"] <= 48 - n_before + 2  # only unfinished frames were decoded again
     clean = WorkDir.at(tmp_path / "clean")
-    subprocess.run(
-        [*cmd, "--work", str(clean.root), "--no-progress"], env=env, check=True, capture_output=True
-    )
+    subprocess.run([*cmd, "--work", str(clean.root), "--quiet"], env=env, check=True, capture_output=True)
     a, b = _snapshot(killed), _snapshot(clean)
     assert not [k for k in a if Path(k).name.startswith(".")], "temporary files left behind"
     assert sorted(a) == sorted(b)

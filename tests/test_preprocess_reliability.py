@@ -123,7 +123,7 @@ def test_disk_full_moment_gives_the_clean_outputs(
 
 # ---- exit codes that tell the truth -------------------------------------------------------------------------------
 def _cli(*args: str) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-m", "lightstage.pipelines.cli", "preprocess", *args, "--no-progress"]
+    cmd = [sys.executable, "-m", "lightstage.pipelines.cli", "preprocess", *args, "--quiet"]
     return subprocess.run(cmd, capture_output=True, text=True, timeout=240)
 
 
