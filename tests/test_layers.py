@@ -18,6 +18,7 @@ LAYERS = (
     ("preprocess", "lightstage.preprocess"),
     ("calibration", "lightstage.calibration"),
     ("dataset", "lightstage.dataset"),
+    ("interop", "lightstage.interop"),
     ("training", "lightstage.training"),
     ("pipelines", "lightstage.pipelines"),
 )
@@ -29,6 +30,12 @@ ALLOWED = {
     "lightstage.preprocess": {"lightstage.capture"},
     "lightstage.calibration": {"lightstage.capture", "lightstage.preprocess"},
     "lightstage.dataset": {"lightstage.capture", "lightstage.preprocess", "lightstage.calibration"},
+    "lightstage.interop": {
+        "lightstage.capture",
+        "lightstage.preprocess",
+        "lightstage.calibration",
+        "lightstage.dataset",
+    },
     "lightstage.training": {
         "lightstage.capture",
         "lightstage.preprocess",

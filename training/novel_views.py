@@ -1,5 +1,5 @@
 """Novel views and lights from a trained model (`lightstage render`): the specs of training/view_specs.py rendered
-as EXR frames, orbits around the scene centre as an MP4 and a PNG strip.
+as EXR frames, orbits around the scene centre as an H.264 MP4 (PyAV) and a PNG strip.
 """
 
 from __future__ import annotations
@@ -122,24 +122,48 @@ def run_render(
     return summary
 
 
-def write_video(path: Path, frames: list[np.ndarray], fps: float) -> Path:
-    """Write uint8 RGB frames as an MP4 (OpenCV VideoWriter, 'mp4v'); odd sizes are padded to even."""
-    import cv2
+H264_ENCODERS = ("libx264", "h264", "libopenh264")  # PyAV encoder names, first available wins
+
+
+def h264_encoder() -> str:
+    """The first H.264 encoder the installed PyAV (its bundled FFmpeg) offers; one clear error otherwise."""
+    try:
+        import av
+    except ImportError:
+        raise LightstageError("writing MP4 needs PyAV: pip install av") from None
+    for name in H264_ENCODERS:
+        try:
+            av.codec.Codec(name, "w")
+            return name
+        except Exception:  # noqa: BLE001 - PyAV raises its own UnknownCodecError per missing encoder
+            continue
+    raise LightstageError(f"PyAV {av.__version__} has no H.264 encoder (tried {', '.join(H264_ENCODERS)})")
+
+
+def write_video(path: Path, frames: list[np.ndarray], fps: float, crf: int = 18) -> Path:
+    """Write uint8 RGB frames as an H.264 MP4 (PyAV: yuv420p, `crf` quality, moov atom first so browsers
+    start playing at once) that browsers, GitHub and slide tools play; odd sizes are padded to even."""
+    from fractions import Fraction
+
+    import av
 
     from lightstage.atomic import atomic_path
 
+    encoder = h264_encoder()
     h, w = frames[0].shape[:2]
     he, we = h + h % 2, w + w % 2
     with atomic_path(path) as tmp:
-        writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (we, he))
-        if not writer.isOpened():
-            raise LightstageError(f"{path}: OpenCV cannot open an mp4v video writer")
-        try:
+        with av.open(str(tmp), mode="w", format="mp4", options={"movflags": "+faststart"}) as container:
+            stream = container.add_stream(encoder, rate=Fraction(fps).limit_denominator(1001))
+            stream.width, stream.height, stream.pix_fmt = we, he, "yuv420p"
+            stream.options = {"crf": str(crf)} if encoder != "libopenh264" else {}
             for f in frames:
-                f = np.pad(f, ((0, he - h), (0, we - w), (0, 0)))
-                writer.write(np.ascontiguousarray(f[..., ::-1]))  # RGB -> BGR
-        finally:
-            writer.release()
+                f = np.pad(np.asarray(f, np.uint8), ((0, he - h), (0, we - w), (0, 0)))
+                frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(f[..., :3]), format="rgb24")
+                for packet in stream.encode(frame):
+                    container.mux(packet)
+            for packet in stream.encode():
+                container.mux(packet)
     return path
 
 

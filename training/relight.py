@@ -114,6 +114,8 @@ class RelightConfig:
     cameras: list[str] = field(default_factory=list)  # camera specs; empty: the first calibrated view
     resolution: str = "32x16"
     rotate_deg: float = 0.0
+    rotate_sweep: int = 0  # frames of one full turn of the envmap about +z (first camera and count; 0 = off)
+    fps: float = 24.0  # of the rotate-sweep video
     downscale: int = 1
     exposure: float | None = None
     checkpoint: str | None = None
@@ -212,9 +214,52 @@ def run_relight(
                     }
         summary["views"][named.name] = view
     summary["exposure"] = exposure
+    if config.rotate_sweep:
+        camera = downscale_camera(cameras[0].camera, config.downscale)
+        summary["rotate_sweep"] = rotate_sweep(
+            model, camera, env, counts[0], config.rotate_sweep, scene.olat_factor, exposure, out, config.fps
+        )
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     write_json_atomic(out / "relight.json", summary)
     return summary
+
+
+def rotate_sweep(
+    model: RelightableModel,
+    camera,
+    env: EnvMap,
+    count: int | str,
+    frames: int,
+    olat_factor: float,
+    exposure: float | None,
+    out: Path,
+    fps: float = 24.0,
+) -> dict[str, Any]:
+    """The envmap turned once about +z in `frames` steps (light count `count`, one camera): OUT/sweep/
+    frame_NNNN.exr + .png, an H.264 OUT/rotate_sweep.mp4 and a strip; one exposure for every frame."""
+    import dataclasses
+
+    from lightstage.frames import write_image
+    from lightstage.tonemap import auto_exposure, tonemap_u8
+    from lightstage.training.envmap import envmap_lights
+    from lightstage.training.novel_views import make_strip, write_video
+
+    if frames < 1:
+        raise LightstageError(f"--rotate-sweep must be >= 1 frames, got {frames}")
+    pngs = []
+    for k in range(frames):
+        turned = dataclasses.replace(env, rotate_deg=env.rotate_deg + 360.0 * k / frames)
+        img = relight_image(model, camera, envmap_lights(turned, count), olat_factor)
+        if exposure is None:
+            exposure = auto_exposure(img, 99.0)
+        write_hdr(
+            out / "sweep" / f"frame_{k:04d}.exr", img, {"lightstage_rotate_deg": f"{turned.rotate_deg:.6f}"}
+        )
+        pngs.append(tonemap_u8(img, exposure))
+        write_image(out / "sweep" / f"frame_{k:04d}.png", pngs[-1])
+    video = write_video(out / "rotate_sweep.mp4", pngs, fps)
+    write_image(out / "rotate_sweep_strip.png", make_strip(pngs))
+    return {"frames": frames, "lights": str(count), "video": str(video), "fps": fps, "exposure": exposure}
 
 
 def _unique_names(cameras: list) -> list:
