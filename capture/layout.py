@@ -16,7 +16,7 @@ import yaml
 
 from lightstage.atomic import write_text_atomic
 from lightstage.capture.stage import Stage, load_stage
-from lightstage.config import ConfigError, load, require
+from lightstage.config import ConfigError, load, read_yaml, require
 from lightstage.errors import LightstageError
 from lightstage.ids import FrameId, ViewId
 
@@ -86,12 +86,7 @@ class Capture:
 def load_capture_info(path: str | os.PathLike[str]) -> CaptureInfo:
     """Read and validate capture.yaml."""
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except OSError as e:
-        raise LightstageError(f"{path}: cannot read ({e.strerror})") from None
-    except yaml.YAMLError as e:
-        raise LightstageError(f"{path}: invalid YAML: {e}") from None
+    data = read_yaml(path, "capture description") or {}
     if not isinstance(data, dict):
         raise LightstageError(f"{path}: expected a mapping at the top level")
     return load(CaptureInfo, data, str(path))

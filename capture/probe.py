@@ -18,7 +18,7 @@ from typing import Any
 import yaml
 
 from lightstage.atomic import write_text_atomic
-from lightstage.config import check_keys
+from lightstage.config import check_keys, read_yaml
 from lightstage.errors import LightstageError
 
 PROBE_FILE = "probe/probe.yaml"
@@ -126,13 +126,7 @@ def load_probe_info(capture_root: str | os.PathLike[str]) -> ProbeInfo | None:
     path = Path(capture_root) / PROBE_FILE
     if not path.exists():
         return None
-    try:
-        data = yaml.safe_load(path.read_text())
-    except OSError as e:
-        raise LightstageError(f"{path}: cannot read ({e.strerror})") from None
-    except (yaml.YAMLError, UnicodeDecodeError) as e:
-        raise LightstageError(f"{path}: invalid YAML: {e}") from None
-    return probe_info_from_dict(data, path)
+    return probe_info_from_dict(read_yaml(path, "probe description"), path)
 
 
 def save_probe_info(info: ProbeInfo, capture_root: str | os.PathLike[str]) -> Path:

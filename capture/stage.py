@@ -16,7 +16,7 @@ import yaml
 
 from lightstage.atomic import write_text_atomic
 from lightstage.cameras import PinholeCamera
-from lightstage.config import check_keys, describe
+from lightstage.config import check_keys, describe, read_yaml
 from lightstage.errors import LightstageError
 from lightstage.rig import TurntableAxis, camera_pose_in_world, light_position_in_world
 
@@ -381,12 +381,4 @@ def _no_duplicates(r: _Reader, section: str, key: str, values: list[Any]) -> Non
 def load_stage(path: str | os.PathLike[str]) -> Stage:
     """Read and validate a stage.yaml."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as e:
-        raise LightstageError(f"{path}: cannot read stage description ({e.strerror})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise LightstageError(f"{path}: invalid YAML: {e}") from None
-    return stage_from_dict(data, str(path))
+    return stage_from_dict(read_yaml(path, "stage description"), str(path))

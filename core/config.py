@@ -378,7 +378,9 @@ def read_yaml(path: str | os.PathLike[str], what: str = "config") -> Any:
     try:
         text = path.read_text()
     except OSError as e:
-        raise LightstageError(f"{path}: cannot read {what} ({e.strerror})") from None
+        raise LightstageError(f"{path}: cannot read {what} ({e.strerror or e})") from None
+    except UnicodeDecodeError:
+        raise LightstageError(f"{path}: not a text file (expected YAML)") from None
     return parse_yaml(text, str(path))
 
 

@@ -12,10 +12,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from lightstage.capture.stage import Stage
-from lightstage.config import ConfigError, check_keys
+from lightstage.config import ConfigError, check_keys, read_yaml
 from lightstage.errors import LightstageError
 from lightstage.ids import FrameId
 from lightstage.lights import paper_number_to_index
@@ -74,13 +73,7 @@ INLINE_PROTOCOL = "split config: protocol"  # the source (and default name) of a
 def protocol_from_yaml(path: str | os.PathLike[str]) -> Protocol:
     """A custom protocol file: name, base (paper|synthetic), cameras/lights/groups {train, test}, test_views."""
     path = Path(path)
-    try:
-        d = yaml.safe_load(path.read_text())
-    except OSError as e:
-        raise LightstageError(f"{path}: cannot read protocol ({e.strerror})") from None
-    except yaml.YAMLError as e:
-        raise LightstageError(f"{path}: invalid YAML: {e}") from None
-    return protocol_from_dict(d, str(path))
+    return protocol_from_dict(read_yaml(path, "protocol"), str(path))
 
 
 def protocol_from_dict(

@@ -36,19 +36,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _load_config(path: Path | None):  # noqa: ANN202 - PreprocessConfig, imported lazily
-    import yaml
 
-    from lightstage.errors import LightstageError
+    from lightstage.config import read_yaml
     from lightstage.preprocess.config import PreprocessConfig
 
     if path is None:
         return PreprocessConfig()
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except OSError as e:
-        raise LightstageError(f"{path}: cannot read ({e.strerror})") from None
-    except yaml.YAMLError as e:
-        raise LightstageError(f"{path}: invalid YAML: {e}") from None
+    data = read_yaml(path, "preprocess config") or {}
     if isinstance(data, dict) and isinstance(data.get("preprocess"), dict):
         data = data["preprocess"]
     return PreprocessConfig.from_dict(data, source=str(path))
