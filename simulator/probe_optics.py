@@ -12,7 +12,7 @@ from scipy.special import ndtr
 
 from lightstage.cameras import PinholeCamera, pixel_rays
 from lightstage.rig import group_transform
-from lightstage.simulator.render import background_image
+from lightstage.simulator.render import background_image, bulb_disc
 from lightstage.simulator.scene import SimScene
 
 if TYPE_CHECKING:
@@ -232,21 +232,10 @@ def ball_bulb_pixels(
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """(rows, cols) of pixels showing the bulb of a light at world `p` that the ball does not hide, or None
     (as render.bulb_pixels, with the ball as the only occluder)."""
-    uv, z = project_point(cam, p)
-    if z <= 0:
+    disc_px = bulb_disc(cam, p, bulb_radius)
+    if disc_px is None:
         return None
-    u, v = uv
-    rad = max(1.5, cam.K[0, 0] * bulb_radius / z)
-    c0, c1 = max(int(np.floor(u - rad)), 0), min(int(np.ceil(u + rad)), cam.width)
-    r0, r1 = max(int(np.floor(v - rad)), 0), min(int(np.ceil(v + rad)), cam.height)
-    if c0 >= c1 or r0 >= r1:
-        return None
-    rows, cols = np.mgrid[r0:r1, c0:c1]
-    inside = (cols + 0.5 - u) ** 2 + (rows + 0.5 - v) ** 2 <= rad**2
-    rows, cols = rows[inside], cols[inside]
-    if rows.size == 0:
-        return None
-    o, d = pixel_rays(np.stack([cols + 0.5, rows + 0.5], -1).astype(np.float64), cam.K, cam.R, cam.t)
+    rows, cols, o, d = disc_px
     # ray-sphere: |o + s d - c|^2 = r^2; occluded where the near hit is in front of the bulb
     oc = o - np.asarray(centre, np.float64)
     bq = np.einsum("ij,ij->i", oc, d)

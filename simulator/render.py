@@ -165,17 +165,19 @@ def backdrop_frame(bd: Backdrop, p: np.ndarray, gain: np.ndarray, shape: tuple[i
     return cv2.resize(small, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
 
 
-def bulb_pixels(scene: SimScene, cam: PinholeCamera, p: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """(rows, cols) of pixels showing the unoccluded bulb of a light at world `p`, or None if it is not in view."""
+def bulb_disc(
+    cam: PinholeCamera, p: np.ndarray, bulb_radius: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """(rows, cols, ray origins, ray directions) of the pixels inside the image of a bulb of `bulb_radius` at
+    world `p` (at least 1.5 px across), before any occlusion; None when it is behind the camera or off-frame."""
     pc = cam.R @ p + cam.t
     if pc[2] <= 0:
         return None
     u = cam.K[0, 0] * pc[0] / pc[2] + cam.K[0, 2]
     v = cam.K[1, 1] * pc[1] / pc[2] + cam.K[1, 2]
-    rad = max(1.5, cam.K[0, 0] * scene.nuisances.bulb_radius / pc[2])
-    c0, c1 = int(np.floor(u - rad)), int(np.ceil(u + rad))
-    r0, r1 = int(np.floor(v - rad)), int(np.ceil(v + rad))
-    c0, c1, r0, r1 = max(c0, 0), min(c1, cam.width), max(r0, 0), min(r1, cam.height)
+    rad = max(1.5, cam.K[0, 0] * bulb_radius / pc[2])
+    c0, c1 = max(int(np.floor(u - rad)), 0), min(int(np.ceil(u + rad)), cam.width)
+    r0, r1 = max(int(np.floor(v - rad)), 0), min(int(np.ceil(v + rad)), cam.height)
     if c0 >= c1 or r0 >= r1:
         return None
     rows, cols = np.mgrid[r0:r1, c0:c1]
@@ -183,8 +185,16 @@ def bulb_pixels(scene: SimScene, cam: PinholeCamera, p: np.ndarray) -> tuple[np.
     rows, cols = rows[inside], cols[inside]
     if rows.size == 0:
         return None
-    uv = np.stack([cols + 0.5, rows + 0.5], axis=-1).astype(np.float64)
-    o, d = pixel_rays(uv, cam.K, cam.R, cam.t)
+    o, d = pixel_rays(np.stack([cols + 0.5, rows + 0.5], axis=-1).astype(np.float64), cam.K, cam.R, cam.t)
+    return rows, cols, o, d
+
+
+def bulb_pixels(scene: SimScene, cam: PinholeCamera, p: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(rows, cols) of pixels showing the unoccluded bulb of a light at world `p`, or None if it is not in view."""
+    disc = bulb_disc(cam, p, scene.nuisances.bulb_radius)
+    if disc is None:
+        return None
+    rows, cols, o, d = disc
     t, kind, _ = first_hit(scene, (o[:, 0], o[:, 1], o[:, 2]), (d[:, 0], d[:, 1], d[:, 2]))
     dist = np.linalg.norm(p - cam.center)
     free = (kind == KIND_NONE) | (t > dist)
