@@ -124,14 +124,6 @@ def render_probe_view(job: ProbeJob) -> ProbeViewRecord:
     )
 
 
-def run_probe_job(job: ProbeJob) -> ProbeViewRecord:
-    """Process-pool entry point: one library thread per process, then render the view."""
-    from lightstage.threads import set_library_threads
-
-    set_library_threads(1)
-    return render_probe_view(job)
-
-
 def probe_jobs(
     root: Path,
     stage: Stage,
@@ -234,7 +226,6 @@ __all__ = [
     "ProbeJob",
     "ProbeViewRecord",
     "render_probe_view",
-    "run_probe_job",
     "probe_jobs",
     "probe_ground_truth",
 ]

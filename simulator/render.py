@@ -349,11 +349,3 @@ def render_view(job: ViewJob) -> ViewRecord:
         path = job.root / job.path_template.format(group=job.group, camera=job.camera, light=lid)
         write_exr(path, raw, half=True, compression=job.compression, attributes=job.attributes)
     return ViewRecord(job.group, job.camera, int(mask.sum()), bulbs, flares, time.perf_counter() - start)
-
-
-def run_view_job(job: ViewJob) -> ViewRecord:
-    """Process-pool entry point: one library thread per process, then render the view."""
-    from lightstage.threads import set_library_threads
-
-    set_library_threads(1)
-    return render_view(job)
