@@ -231,7 +231,6 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 def run_mesh(
     work: WorkDir,
     config: MeshConfig,
-    client: Any = None,
     progress: bool = True,
     model: RelightableModel | None = None,
 ) -> dict[str, Any]:

@@ -133,7 +133,6 @@ class RelightConfig:
 def run_relight(
     work: WorkDir,
     config: RelightConfig,
-    client: Any = None,
     progress: bool = True,
     model: RelightableModel | None = None,
 ) -> dict[str, Any]:
