@@ -166,7 +166,10 @@ def test_transparent_field_and_bad_extension_are_errors(tmp_path):
     blob = SoftBlob(amplitude=0.1)
     with pytest.raises(LightstageError, match="transparent.*--threshold"):
         run_mesh(
-            WorkDir.at(tmp_path), MeshConfig(resolution=8, out=str(tmp_path / "m.ply")), progress=False, model=blob
+            WorkDir.at(tmp_path),
+            MeshConfig(resolution=8, out=str(tmp_path / "m.ply")),
+            progress=False,
+            model=blob,
         )
     model = SphereDensity()
     for bad in ("mesh.obj", "mesh", "mesh.ply.gz"):
