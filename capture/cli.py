@@ -77,7 +77,8 @@ def register_capture(subparsers: argparse._SubParsersAction) -> None:
 def _capture_validate(args: argparse.Namespace) -> int:
     import sys
 
-    from lightstage.capture.validate import DEFAULT_TIMEOUT_S, validate_capture
+    from lightstage.capture.frame_checks import DEFAULT_TIMEOUT_S
+    from lightstage.capture.validate import validate_capture
     from lightstage.errors import LightstageError
 
     if args.workers is not None and args.workers < 1:

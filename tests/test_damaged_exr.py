@@ -12,7 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from lightstage.capture.validate import DecoderPool, check_files
+from lightstage.capture.decoder_pool import DecoderPool
+from lightstage.capture.validate import check_files
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -51,7 +52,7 @@ RAW_DECODER_SCRIPT = textwrap.dedent(
     """
     import sys
     import OpenEXR
-    from lightstage.capture import validate
+    from lightstage.capture import decoder_pool
 
     def raw(request):
         try:
@@ -61,7 +62,7 @@ RAW_DECODER_SCRIPT = textwrap.dedent(
         except Exception as e:
             return {"status": "corrupt", "message": f"{request['path']}: {type(e).__name__}: {e}"}
 
-    sys.exit(validate.decoder_main(raw))
+    sys.exit(decoder_pool.decoder_main(raw))
     """
 )
 

@@ -197,7 +197,7 @@ def test_stalled_read_fails_within_the_timeout_naming_the_frame(
 def test_negative_pixels_are_rejected_by_validate_and_preprocess_alike(
     small_capture: Path, tmp_path: Path
 ) -> None:
-    from lightstage.capture.validate import decode_check
+    from lightstage.capture.frame_checks import decode_check
 
     cap = _copy(small_capture, tmp_path / "cap")
     path = cap / "frames" / "000" / "cam01" / "003.exr"

@@ -13,16 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lightstage.capture.decoder_pool import DecoderPool
+from lightstage.capture.frame_checks import STATUSES, decode_check
 from lightstage.capture.layout import CaptureInfo, open_capture, save_capture_info
 from lightstage.capture.presets import make_stage
-from lightstage.capture.validate import (
-    STATUSES,
-    DecoderPool,
-    ValidateConfig,
-    decode_check,
-    run_validate,
-    validate_capture,
-)
+from lightstage.capture.validate import ValidateConfig, run_validate, validate_capture
 from lightstage.errors import LightstageError
 from lightstage.frames import check_pixels, write_exr
 from lightstage.pipelines.cli import main
@@ -168,7 +163,7 @@ def test_cli_missing_stage_yaml_exit_2(tmp_path, capsys):
 FAKE_WORKER = textwrap.dedent(
     """
     import os, signal, sys, time
-    from lightstage.capture import validate
+    from lightstage.capture import decoder_pool, frame_checks
 
     def check(request):
         name = os.path.basename(request["path"])
@@ -176,9 +171,9 @@ FAKE_WORKER = textwrap.dedent(
             os.kill(os.getpid(), signal.SIGSEGV)
         if name.startswith("hang"):
             time.sleep(600)
-        return validate.decode_check(request)
+        return frame_checks.decode_check(request)
 
-    sys.exit(validate.decoder_main(check))
+    sys.exit(decoder_pool.decoder_main(check))
     """
 )
 
@@ -315,7 +310,7 @@ def write_layouts(folder: Path) -> list[Path]:
 
 
 def test_header_parser_on_valid_layouts_and_every_truncation(tmp_path):
-    from lightstage.capture.validate import check_header
+    from lightstage.capture.frame_checks import check_header
     from lightstage.frames import read_exr, read_exr_header
 
     for path in write_layouts(tmp_path):
