@@ -178,7 +178,8 @@ class ConcurrentFloor:
 def breakdown(paths: list[Path], tmp: Path) -> dict[str, dict[str, float]]:
     """Mean wall and CPU seconds per step of the per-frame work, in this process (one library thread); the
     write is timed for every lossless compression."""
-    from lightstage.frames import COMPRESSIONS, prefetch_file
+    from lightstage.exr_header import prefetch_file
+    from lightstage.frames import COMPRESSIONS
     from lightstage.preprocess.downscale import decode_downscale, decode_raw, downscale
     from lightstage.preprocess.flare import lit_threshold, thumbnail
     from lightstage.preprocess.frame_task import check_finite

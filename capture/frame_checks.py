@@ -1,5 +1,5 @@
 """Per-frame checks of capture validation: the statuses a frame can get, its manifest record, the header check
-(pure Python, frames.read_exr_header) and the decode check a decoder process runs (capture/decoder_pool.py)."""
+(pure Python, exr_header.read_exr_header) and the decode check a decoder process runs (capture/decoder_pool.py)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from lightstage import frames
+from lightstage import exr_header, frames
 from lightstage.errors import LightstageError
 
 # Every status a frame can get; only `ok` frames are usable.
@@ -86,7 +86,7 @@ def check_header(frame_id: str, path: Path, rel: str, expected_size: tuple[int, 
     if st.st_size == 0:
         return rec.fail("empty", f"{path}: empty file")
     try:
-        header = frames.read_exr_header(path)
+        header = exr_header.read_exr_header(path)
     except LightstageError as e:
         return rec.fail("unreadable", str(e))
     except Exception as e:  # a bug in the parser must cost one file, not the scan
@@ -98,15 +98,15 @@ def check_header(frame_id: str, path: Path, rel: str, expected_size: tuple[int, 
     if header.chunk_problem:
         cut = header.chunk_problem.startswith(("truncated", "incomplete"))
         return rec.fail("truncated" if cut else "unreadable", f"{path}: {header.chunk_problem}")
-    if frames.oversized(header.width, header.height) or (
+    if exr_header.oversized(header.width, header.height) or (
         expected_size is not None and (header.width, header.height) != tuple(expected_size)
     ):
         want = f"expected {expected_size[0]}x{expected_size[1]}" if expected_size else "over the pixel limit"
         return rec.fail("wrong_resolution", f"{path}: resolution {header.width}x{header.height}, {want}")
     try:
-        frames.check_exr_header(header, expected_size, "RGB")
+        exr_header.check_exr_header(header, expected_size, "RGB")
     except LightstageError as e:
-        status = "unreadable" if header.decode_bytes > frames.MAX_DECODE_BYTES else "wrong_channels"
+        status = "unreadable" if header.decode_bytes > exr_header.MAX_DECODE_BYTES else "wrong_channels"
         return rec.fail(status, str(e))
     return rec
 

@@ -1,6 +1,6 @@
 """Capture validation: check every expected frame of a raw capture and write a manifest and a report.
 
-Header checks (pure Python, see frames.read_exr_header) run in a thread pool and are fast over 60k files.
+Header checks (pure Python, see exr_header.read_exr_header) run in a thread pool and are fast over 60k files.
 `deep` validation also decodes the pixels, in worker *processes* (DecoderPool): a native decoder that crashes
 or hangs on a hostile file costs that file only (status `corrupt`), and the scan goes on.
 """

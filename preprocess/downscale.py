@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from lightstage.errors import LightstageError
-from lightstage.frames import check_exr_header, oiio_error, read_exr_header, set_exr_limits
+from lightstage.exr_header import check_exr_header, read_exr_header
+from lightstage.frames import oiio_error, set_exr_limits
 from lightstage.workdir import DOWNSCALE
 
 

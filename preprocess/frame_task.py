@@ -12,7 +12,8 @@ import numpy as np
 
 from lightstage.atomic import atomic_path
 from lightstage.errors import EnvironmentFault, LightstageError, is_environment_error
-from lightstage.frames import pixel_verdict, prefetch_file
+from lightstage.exr_header import prefetch_file
+from lightstage.frames import pixel_verdict
 from lightstage.ids import FrameId, ViewId
 from lightstage.preprocess.downscale import Downscaled, decode_downscale, decode_raw, downscale
 from lightstage.preprocess.jobs import (

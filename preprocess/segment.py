@@ -67,13 +67,25 @@ def keep_components(mask: np.ndarray, config: PreprocessConfig) -> np.ndarray:
     return np.isin(labels, keep)
 
 
-def _normalised_blur(values: np.ndarray, weights: np.ndarray, sigma: float) -> np.ndarray:
+def _normalised_blur(
+    values: np.ndarray, weights: np.ndarray, sigma: float, den: np.ndarray | None = None
+) -> np.ndarray:
+    """Gaussian-weighted local mean of `values` under `weights`; `den` (= _weight_blur(weights, sigma)) may be
+    passed when several values share the weights: at the background's sigma (~250 px) each blur costs ~1 CPU-s."""
     import cv2
 
     w = weights.astype(np.float32)
     num = cv2.GaussianBlur(values.astype(np.float32) * w, (0, 0), sigma)
-    den = cv2.GaussianBlur(w, (0, 0), sigma)
-    return num / np.maximum(den, 1e-6)
+    if den is None:
+        den = _weight_blur(w, sigma)
+    return num / den
+
+
+def _weight_blur(weights: np.ndarray, sigma: float) -> np.ndarray:
+    """The denominator of _normalised_blur: the blurred weights, floored at 1e-6."""
+    import cv2
+
+    return np.maximum(cv2.GaussianBlur(weights.astype(np.float32), (0, 0), sigma), 1e-6)
 
 
 def refine_boundary(
@@ -178,8 +190,9 @@ def colour_refine(mask: np.ndarray, stats: ViewStats, config: PreprocessConfig) 
     w_in, w_out = (inner & reliable), (away & reliable)
     if not w_in.any() or not w_out.any():
         return mask
-    c_obj = np.stack([_normalised_blur(chroma[..., k], w_in, sigma) for k in range(2)], axis=-1)
-    c_bg = np.stack([_normalised_blur(chroma[..., k], w_out, 4 * sigma) for k in range(2)], axis=-1)
+    den_in, den_out = _weight_blur(w_in, sigma), _weight_blur(w_out, 4 * sigma)
+    c_obj = np.stack([_normalised_blur(chroma[..., k], w_in, sigma, den_in) for k in range(2)], axis=-1)
+    c_bg = np.stack([_normalised_blur(chroma[..., k], w_out, 4 * sigma, den_out) for k in range(2)], axis=-1)
     dev = np.linalg.norm(chroma - c_bg, axis=-1)
     spread = 1.4826 * float(np.median(dev[w_out]))
     if not spread > 0:
@@ -190,7 +203,7 @@ def colour_refine(mask: np.ndarray, stats: ViewStats, config: PreprocessConfig) 
     add &= (dev > config.background_sigmas * spread) & (d_obj < dev)
     # not a pixel that is partly covered by the bright object (its colour would be the object's): as dark as the
     # local background, like a dark-albedo part of the object
-    lum_bg = _normalised_blur(lum, w_out, 4 * sigma)
+    lum_bg = _normalised_blur(lum, w_out, 4 * sigma, den_out)
     add &= lum < 1.5 * lum_bg
     if not add.any():
         return mask
@@ -251,10 +264,13 @@ def _segment_adaptive(stats: ViewStats, config: PreprocessConfig) -> tuple[np.nd
         if np.count_nonzero(away) < 0.05 * mask.size:
             break
         weight = away.astype(np.float32) * (1.0 + ring)
+        den = _weight_blur(weight, sigma)  # shared by every layer's two blurs
         for layer in layers:
             level = layer[0]
-            layer[1] = _normalised_blur(level, weight, sigma)
-            layer[2] = np.maximum(1.2533 * _normalised_blur(np.abs(level - layer[1]), weight, sigma), floor)
+            layer[1] = _normalised_blur(level, weight, sigma, den)
+            layer[2] = np.maximum(
+                1.2533 * _normalised_blur(np.abs(level - layer[1]), weight, sigma, den), floor
+            )
     return mask, info
 
 

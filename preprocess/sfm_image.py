@@ -92,7 +92,7 @@ def sfm_mean_image(src: SfmSource, trim: bool) -> np.ndarray:
 
 def _decode_at_factor(src: SfmSource, light: int) -> np.ndarray:
     """A raw frame at raw / factor, x exposure_scale (what a chunk task saves in `cached`)."""
-    from lightstage.frames import prefetch_file
+    from lightstage.exr_header import prefetch_file
     from lightstage.preprocess.downscale import decode_downscale, decode_raw, downscale
 
     path = src.raw_paths[light]

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from lightstage.errors import LightstageError
-from lightstage.frames import read_exr, read_exr_header, read_image, write_exr, write_exr_planes, write_image
+from lightstage.exr_header import read_exr_header
+from lightstage.frames import read_exr, read_image, write_exr, write_exr_planes, write_image
 
 
 @pytest.mark.parametrize("half", [True, False])

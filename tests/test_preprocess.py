@@ -19,7 +19,8 @@ import yaml
 
 from lightstage.capture.layout import open_capture
 from lightstage.errors import LightstageError
-from lightstage.frames import read_exr_header, write_exr, write_exr_planes
+from lightstage.exr_header import read_exr_header
+from lightstage.frames import write_exr, write_exr_planes
 from lightstage.ids import FrameId, ViewId
 from lightstage.preprocess.config import PreprocessConfig
 from lightstage.preprocess.downscale import (

@@ -17,10 +17,12 @@ from pathlib import Path
 import pytest
 from test_preprocess import _snapshot, _subset_capture, _work
 
+import lightstage.exr_header as exr_header
 import lightstage.frames as frames
 import lightstage.records.processed as processed
 from lightstage.errors import EnvironmentFault, LightstageError, StageIncomplete
-from lightstage.frames import prefetch_file, read_exr_header, write_exr
+from lightstage.exr_header import prefetch_file, read_exr_header
+from lightstage.frames import write_exr
 from lightstage.preprocess.config import PreprocessConfig
 from lightstage.preprocess.run import run_preprocess
 
@@ -71,7 +73,7 @@ def test_permission_error_fixed_between_runs_gives_the_clean_outputs(
     small_capture: Path, clean: dict[str, bytes], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     denied = str(small_capture / "frames" / "000" / "cam01" / "007.exr")
-    real = frames._read_all
+    real = exr_header._read_all
 
     def read_all(path: Path) -> None:
         if str(path) == denied:
@@ -79,7 +81,7 @@ def test_permission_error_fixed_between_runs_gives_the_clean_outputs(
         real(path)
 
     work = _work(tmp_path / "work", small_capture)
-    monkeypatch.setattr(frames, "_read_all", read_all)
+    monkeypatch.setattr(exr_header, "_read_all", read_all)
     with pytest.raises(StageIncomplete) as e:
         run_preprocess(work, PreprocessConfig(chunk_lights=5), progress=False)
     assert "000/cam01" in e.value.missing and "1 of 2 views failed" in str(e.value)
@@ -87,7 +89,7 @@ def test_permission_error_fixed_between_runs_gives_the_clean_outputs(
     assert report["status"] == "incomplete" and report["missing"]["views"] == ["000/cam01"]
     assert report["problems"] == []  # not remembered as a bad frame
     assert "Permission denied" in report["errors"][0] and denied in report["errors"][0]
-    monkeypatch.setattr(frames, "_read_all", real)  # the cause is fixed
+    monkeypatch.setattr(exr_header, "_read_all", real)  # the cause is fixed
     summary = run_preprocess(work, PreprocessConfig(chunk_lights=5), progress=False)
     assert summary["status"] == "complete" and summary["problems"] == 0
     got = _snapshot(work)
@@ -183,7 +185,7 @@ def test_stalled_read_fails_within_the_timeout_naming_the_frame(
     small_capture: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     release = threading.Event()
-    monkeypatch.setattr(frames, "_read_all", lambda path: release.wait(60))  # storage that never answers
+    monkeypatch.setattr(exr_header, "_read_all", lambda path: release.wait(60))  # storage that never answers
     frame = small_capture / "frames" / "000" / "cam00" / "001.exr"
     try:
         with pytest.raises(EnvironmentFault, match="read stalled") as e:

@@ -385,7 +385,8 @@ def test_cli_relight_render_mesh_on_a_trained_checkpoint(trained_work, tmp_path,
 
 
 def test_hdr_outputs_keep_values_beyond_half_range(tmp_path):
-    from lightstage.frames import read_exr, read_exr_header
+    from lightstage.exr_header import read_exr_header
+    from lightstage.frames import read_exr
     from lightstage.training.relight import write_hdr
 
     img = np.full((4, 5, 3), 1.0e6, np.float32)

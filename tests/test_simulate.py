@@ -12,7 +12,8 @@ import pytest
 
 from lightstage.capture.layout import open_capture
 from lightstage.errors import LightstageError
-from lightstage.frames import read_exr, read_exr_header, read_image
+from lightstage.exr_header import read_exr_header
+from lightstage.frames import read_exr, read_image
 from lightstage.ids import FrameId
 from lightstage.simulator.render import saturation_value
 from lightstage.simulator.scene import Ellipsoid

@@ -13,7 +13,8 @@ from lightstage.cameras import PinholeCamera, look_at
 from lightstage.capture.layout import open_capture
 from lightstage.capture.probe import PROBE_FILE, ProbeInfo, load_probe_info, save_probe_info
 from lightstage.errors import LightstageError
-from lightstage.frames import read_exr, read_exr_header
+from lightstage.exr_header import read_exr_header
+from lightstage.frames import read_exr
 from lightstage.rig import group_transform
 from lightstage.simulator.probe import ProbeSettings
 from lightstage.simulator.probe_optics import (

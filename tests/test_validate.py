@@ -311,7 +311,8 @@ def write_layouts(folder: Path) -> list[Path]:
 
 def test_header_parser_on_valid_layouts_and_every_truncation(tmp_path):
     from lightstage.capture.frame_checks import check_header
-    from lightstage.frames import read_exr, read_exr_header
+    from lightstage.exr_header import read_exr_header
+    from lightstage.frames import read_exr
 
     for path in write_layouts(tmp_path):
         header = read_exr_header(path)

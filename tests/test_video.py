@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from lightstage.frames import read_exr_header, write_exr
+from lightstage.exr_header import read_exr_header
+from lightstage.frames import write_exr
 from lightstage.training.envmap import pixel_directions
 from lightstage.training.novel_views import write_video
 from lightstage.training.relight import RelightConfig, run_relight

@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from lightstage.errors import LightstageError
-from lightstage.frames import ExrPart, read_exr_header, write_exr_parts
+from lightstage.exr_header import read_exr_header
+from lightstage.frames import ExrPart, write_exr_parts
 
 CHANNELS = "RGBS"
 TILE = 256  # tile side of the processed frames; OpenEXR's per-chunk cost is negligible at 48 tiles per part
