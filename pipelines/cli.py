@@ -30,6 +30,7 @@ COMMAND_MODULES = (
     "lightstage.preprocess.cli",
     "lightstage.calibration.cli",
     "lightstage.dataset.cli",
+    "lightstage.interop.cli",
     "lightstage.training.cli",
     "lightstage.pipelines.commands",
 )
@@ -52,8 +53,9 @@ LOCKING_COMMANDS = {
     "shard": False,
     "train": False,
     "eval": False,
+    "import": True,  # writes a new WORK from an external dataset
 }
-READ_ONLY_COMMANDS = frozenset({"relight", "render", "mesh"})  # they write to --out
+READ_ONLY_COMMANDS = frozenset({"relight", "render", "mesh", "export"})  # they write to --out
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -72,6 +72,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--resolution", default="32x16", help="envmap resampling WIDTHxHEIGHT (default 32x16)")
     p.add_argument("--rotate-deg", type=float, default=0.0, help="rotate the envmap about +z (degrees)")
+    p.add_argument(
+        "--rotate-sweep",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also render N frames of one envmap turn about +z (first camera and light count) as an H.264 MP4",
+    )
     _common(p)
     p.add_argument("--out", required=True, help="output folder")
     p.set_defaults(func=_relight)
@@ -216,6 +223,7 @@ def _relight(args: argparse.Namespace) -> int:
         cameras=list(args.camera),
         resolution=args.resolution,
         rotate_deg=args.rotate_deg,
+        rotate_sweep=args.rotate_sweep,
         downscale=args.downscale,
         exposure=args.exposure,
         checkpoint=args.checkpoint,
