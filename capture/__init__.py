@@ -1,1 +1,1 @@
-"""Stage description, raw-capture layout, HDR frame I/O, capture validation and the simulator."""
+"""The raw-capture contract: stage description (stage.yaml), capture layout, the probe contract, and capture validation."""
