@@ -105,6 +105,7 @@ class ViewRecord:
 
 # ---- helpers ------------------------------------------------------------------------------------------------
 def partial_path(work: WorkDir, view: ViewId, index: int, key: str) -> Path:
+    """Where chunk `index` of a view saves its partial statistics (`key`: the config's stats_key)."""
     return work.view_dir(view) / PARTIALS / f"chunk{index:04d}-{key}.npz"
 
 
@@ -114,10 +115,12 @@ def sfm_frame_path(work: WorkDir, view: ViewId, light: int) -> Path:
 
 
 def split_lights(lights: list[int], size: int) -> list[tuple[int, ...]]:
+    """The lights in chunks of `size` (chunk_lights), in order."""
     return [tuple(lights[i : i + size]) for i in range(0, len(lights), size)]
 
 
 def in_dask_worker() -> bool:
+    """Whether this code runs inside a dask worker (tasks there set one library thread per process)."""
     try:
         from distributed import get_worker
 
@@ -128,6 +131,7 @@ def in_dask_worker() -> bool:
 
 
 def file_signature(path: str) -> list[float]:
+    """[size, mtime] of a raw file ([-1, -1] when it cannot be stat-ed): a bad frame is retried when it changes."""
     try:
         st = os.stat(path)
         return [float(st.st_size), float(st.st_mtime)]
@@ -160,6 +164,7 @@ def _alive(pid: int) -> bool:
 
 
 def reason_of(e: BaseException) -> str:
+    """One line for a per-frame problem: a LightstageError's message, else the exception type and first line."""
     if isinstance(e, LightstageError):
         return str(e)
     text = str(e).strip().splitlines()
