@@ -159,7 +159,7 @@ def _array(value: Any, shape: tuple[int, ...], what: str) -> np.ndarray:
 
 
 def _image_path(root: Path, frame: dict[str, Any], where: str) -> Path:
-    """The frame's image: `img_path`, or `file_path` (+ `file_ext`, or the first of .exr/.png that exists)."""
+    """The frame's image: `img_path`, or `file_path` (+ `file_ext`, or the first of .png/.exr that exists)."""
     if "img_path" in frame:
         return root / str(frame["img_path"])
     if "file_path" not in frame:
@@ -167,7 +167,7 @@ def _image_path(root: Path, frame: dict[str, Any], where: str) -> Path:
     base = root / str(frame["file_path"])
     if base.suffix.lower() in (".exr", ".png", ".jpg", ".jpeg"):
         return base
-    exts = [frame["file_ext"]] if "file_ext" in frame else [".exr", ".png"]
+    exts = [frame["file_ext"]] if "file_ext" in frame else [".png", ".exr"]  # the loaders default to .png
     for ext in exts:
         if Path(f"{base}{ext}").is_file():
             return Path(f"{base}{ext}")

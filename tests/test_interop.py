@@ -54,6 +54,7 @@ def roundtrip(tiny_capture: Path, tmp_path_factory):
     return work, root / "olat", imported
 
 
+@pytest.mark.slow  # the module fixture runs the tiny capture to split (~45 s on 2 busy cores)
 def test_same_cameras_lights_images_and_split(roundtrip):
     work, _, imported = roundtrip
     ca, cb = Calibration.load(work.calibration), Calibration.load(imported.calibration)
@@ -77,6 +78,7 @@ def test_same_cameras_lights_images_and_split(roundtrip):
     assert report["frames"] == sa.counts()["train"] + sa.counts()["test"]
 
 
+@pytest.mark.slow
 def test_exported_fields_follow_the_loaders_conventions(roundtrip):
     """What NRHints / GS^3 / nerfstudio-style loaders compute from the file is our camera and light."""
     from lightstage.frames import read_exr
