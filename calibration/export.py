@@ -139,7 +139,9 @@ def _kept_observations(
     """Per point, the observations that reproject within `max_reproj_px` under the calibration's cameras;
     points left with fewer than two are dropped (empty list)."""
     if tracks is None:
-        return [], {"points": 0, "observations": 0, "dropped_observations": 0, "max_reprojection_px": None}
+        none = "none: cameras only (no SfM points: the nominal method matches no features)"
+        return [], {"points": 0, "observations": 0, "dropped_observations": 0, "max_reprojection_px": None,
+                    "tracks": none}  # fmt: skip
     cams = {
         colmap_image_name(v.group, v.camera): (
             _camera(1, vc),
@@ -173,6 +175,7 @@ def _kept_observations(
         "observations": n_obs,
         "dropped_observations": dropped,
         "max_reprojection_px": worst if n_obs else None,
+        "tracks": f"SfM points with observations reprojecting within {max_reproj_px} px",
     }
     return kept, stats
 
