@@ -115,19 +115,11 @@ def _describe(settings: Any) -> str:
 
 # ---- relighting ------------------------------------------------------------------------------------------
 def sky_envmap(path: Path, width: int = 64, height: int = 32) -> Path:
-    """A synthetic lat-long sky: blue gradient above the horizon, dim ground, a small bright sun."""
+    """A synthetic lat-long sky (lightstage.training.envmap.procedural_sky) written as EXR."""
     from lightstage.frames import write_exr
+    from lightstage.training.envmap import procedural_sky
 
-    lat = (0.5 - (np.arange(height) + 0.5) / height) * np.pi  # +pi/2 at the top row
-    lon = ((np.arange(width) + 0.5) / width) * 2 * np.pi - np.pi
-    lat_g, lon_g = np.meshgrid(lat, lon, indexing="ij")
-    up = np.clip(np.sin(lat_g), 0, None)[..., None]
-    img = np.where(lat_g[..., None] > 0, np.array([0.25, 0.45, 0.9]) * (0.4 + 0.6 * up), [0.08, 0.07, 0.06])
-    sun = np.exp(
-        -(((lat_g - np.deg2rad(45)) ** 2 + (lon_g - np.deg2rad(30)) ** 2) / (2 * np.deg2rad(4) ** 2))
-    )
-    img = img + 40.0 * sun[..., None] * np.array([1.0, 0.95, 0.85])
-    write_exr(path, img.astype(np.float32))
+    write_exr(path, procedural_sky(width, height))
     return path
 
 

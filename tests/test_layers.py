@@ -20,6 +20,7 @@ LAYERS = (
     ("dataset", "lightstage.dataset"),
     ("interop", "lightstage.interop"),
     ("training", "lightstage.training"),
+    ("viewer", "lightstage.viewer"),
     ("pipelines", "lightstage.pipelines"),
 )
 # What each package may import besides itself and the root package (the stages before it in the data flow).
@@ -42,6 +43,8 @@ ALLOWED = {
         "lightstage.calibration",
         "lightstage.dataset",
     },
+    # the viewer shows captures and trained models: every stage before it but the simulator
+    "lightstage.viewer": {name for _, name in LAYERS[1:-2]} - {"lightstage.simulator"},
     "lightstage.pipelines": {name for _, name in LAYERS[1:-1]},
 }
 

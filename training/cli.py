@@ -61,7 +61,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("work", help="work directory")
     p.add_argument("--envmap", required=True, help="lat-long HDR map (.exr, .hdr, ...)")
     p.add_argument(
-        "--lights", default="64", help="power of two, 'all', or a comma list, e.g. 16,64,all (default 64)"
+        "--lights",
+        default="64",
+        help="power of two, 'all', 'stage' (the viewer's interpolated stage-light basis), or a comma list, "
+        "e.g. 16,64,all (default 64)",
     )
     p.add_argument(
         "--camera",

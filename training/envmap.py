@@ -351,3 +351,17 @@ def _continuous_pixel(
     lat = np.arcsin(np.clip(d[2], -1.0, 1.0))
     lon = np.arctan2(d[1], d[0])
     return (np.pi / 2 - lat) / np.pi * height, (np.pi - lon) / (2 * np.pi) * width
+
+
+def procedural_sky(width: int = 64, height: int = 32) -> np.ndarray:
+    """(H, W, 3) float32 synthetic lat-long sky (the demo's and the viewer's built-in map): a blue gradient
+    above the horizon, a dim ground, a small bright sun 45 deg up."""
+    lat = (0.5 - (np.arange(height) + 0.5) / height) * np.pi  # +pi/2 at the top row
+    lon = ((np.arange(width) + 0.5) / width) * 2 * np.pi - np.pi
+    lat_g, lon_g = np.meshgrid(lat, lon, indexing="ij")
+    up = np.clip(np.sin(lat_g), 0, None)[..., None]
+    img = np.where(lat_g[..., None] > 0, np.array([0.25, 0.45, 0.9]) * (0.4 + 0.6 * up), [0.08, 0.07, 0.06])
+    sun = np.exp(
+        -(((lat_g - np.deg2rad(45)) ** 2 + (lon_g - np.deg2rad(30)) ** 2) / (2 * np.deg2rad(4) ** 2))
+    )
+    return (img + 40.0 * sun[..., None] * np.array([1.0, 0.95, 0.85])).astype(np.float32)

@@ -85,18 +85,19 @@ def psnr_tonemapped(pred: np.ndarray, ref: np.ndarray, exposure: float) -> float
 
 
 def parse_lights_option(text: str | int | list) -> list[int | str]:
-    """'64' / '16,64,all' / [16, 'all'] -> [16, 64, 'all']; counts must be powers of two."""
+    """'64' / '16,64,all' / [16, 'all'] -> [16, 64, 'all']; counts must be powers of two; 'stage' is the
+    viewer's basis of stage lights with its interpolated weights (lightstage.training.light_basis)."""
     items = text if isinstance(text, list) else str(text).split(",")
     out: list[int | str] = []
     for item in items:
         s = str(item).strip().lower()
-        if s == "all":
-            out.append("all")
+        if s in ("all", "stage"):
+            out.append(s)
             continue
         try:
             k = int(s)
         except ValueError:
-            raise LightstageError(f"--lights: expected a power of two or 'all', got {item!r}") from None
+            raise LightstageError(f"--lights: expected a power of two, 'all' or 'stage', got {item!r}") from None
         if k < 1 or k & (k - 1):
             raise LightstageError(f"--lights: {k} is not a power of two (median cut halves regions)")
         out.append(k)
@@ -141,7 +142,8 @@ def run_relight(
     from lightstage.atomic import write_json_atomic
     from lightstage.frames import write_image
     from lightstage.tonemap import auto_exposure, tonemap_u8
-    from lightstage.training.envmap import envmap_lights, load_envmap, parse_resolution, preview_with_lights
+    from lightstage.training.envmap import load_envmap, parse_resolution, preview_with_lights
+    from lightstage.training.light_basis import stage_basis
     from lightstage.training.view_specs import downscale_camera, load_scene_info, parse_camera
 
     t0 = time.perf_counter()
@@ -159,9 +161,10 @@ def run_relight(
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
 
+    basis = stage_basis(scene.calibration) if "stage" in counts else None
     light_sets: dict[str, Lights] = {}
     for k in counts:
-        light_sets[str(k)] = envmap_lights(env, k)
+        light_sets[str(k)] = light_set(env, k, basis)
     env_exposure = _env_exposure(env)
     for key, lights in light_sets.items():
         write_image(
@@ -216,7 +219,16 @@ def run_relight(
     if config.rotate_sweep:
         camera = downscale_camera(cameras[0].camera, config.downscale)
         summary["rotate_sweep"] = rotate_sweep(
-            model, camera, env, counts[0], config.rotate_sweep, scene.olat_factor, exposure, out, config.fps
+            model,
+            camera,
+            env,
+            counts[0],
+            config.rotate_sweep,
+            scene.olat_factor,
+            exposure,
+            out,
+            config.fps,
+            basis,
         )
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     write_json_atomic(out / "relight.json", summary)
@@ -233,6 +245,7 @@ def rotate_sweep(
     exposure: float | None,
     out: Path,
     fps: float = 24.0,
+    basis=None,
 ) -> dict[str, Any]:
     """The envmap turned once about +z in `frames` steps (light count `count`, one camera): OUT/sweep/
     frame_NNNN.exr + .png, an H.264 OUT/rotate_sweep.mp4 and a strip; one exposure for every frame."""
@@ -240,7 +253,6 @@ def rotate_sweep(
 
     from lightstage.frames import write_image
     from lightstage.tonemap import auto_exposure, tonemap_u8
-    from lightstage.training.envmap import envmap_lights
     from lightstage.training.novel_views import make_strip, write_video
 
     if frames < 1:
@@ -248,7 +260,7 @@ def rotate_sweep(
     pngs = []
     for k in range(frames):
         turned = dataclasses.replace(env, rotate_deg=env.rotate_deg + 360.0 * k / frames)
-        img = relight_image(model, camera, envmap_lights(turned, count), olat_factor)
+        img = relight_image(model, camera, light_set(turned, count, basis), olat_factor)
         if exposure is None:
             exposure = auto_exposure(img, 99.0)
         write_hdr(
@@ -274,7 +286,17 @@ def _unique_names(cameras: list) -> list:
 
 
 def _tag(key: str) -> str:
-    return "all" if key == "all" else f"k{int(key):03d}"
+    return key if key in ("all", "stage") else f"k{int(key):03d}"
+
+
+def light_set(env: EnvMap, key: int | str, basis=None) -> Lights:
+    """The lights of one `--lights` entry: median cut, every pixel ('all'), or the stage basis ('stage')."""
+    from lightstage.training.envmap import envmap_lights
+    from lightstage.training.light_basis import stage_basis, stage_lights
+
+    if key == "stage":
+        return stage_lights(env, basis if basis is not None else stage_basis(None))
+    return envmap_lights(env, key)
 
 
 def _env_exposure(env: EnvMap) -> float:
