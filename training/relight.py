@@ -97,7 +97,9 @@ def parse_lights_option(text: str | int | list) -> list[int | str]:
         try:
             k = int(s)
         except ValueError:
-            raise LightstageError(f"--lights: expected a power of two, 'all' or 'stage', got {item!r}") from None
+            raise LightstageError(
+                f"--lights: expected a power of two, 'all' or 'stage', got {item!r}"
+            ) from None
         if k < 1 or k & (k - 1):
             raise LightstageError(f"--lights: {k} is not a power of two (median cut halves regions)")
         out.append(k)

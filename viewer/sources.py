@@ -31,7 +31,9 @@ def ring_camera(calibration, camera: str | None) -> str:
     cams = sorted({v.camera for v in calibration.views})
     if camera is not None:
         if camera not in cams:
-            raise LightstageError(f"--camera {camera!r}: not a calibrated camera (e.g. {', '.join(cams[:5])})")
+            raise LightstageError(
+                f"--camera {camera!r}: not a calibrated camera (e.g. {', '.join(cams[:5])})"
+            )
         return camera
     centre = np.asarray(calibration.scene_centre, np.float64)
     elevation = {}
@@ -59,7 +61,9 @@ def ring_groups(calibration, camera: str, count: int) -> list[str]:
 def calibrated_ring(calibration, camera: str, groups: list[str]) -> list[RingView]:
     """The calibrated views (GROUP/camera) of the ring."""
     return [
-        RingView(f"{g}_{camera}", f"{g}/{camera}", calibration.views[ViewId(g, camera)].camera(), ViewId(g, camera))
+        RingView(
+            f"{g}_{camera}", f"{g}/{camera}", calibration.views[ViewId(g, camera)].camera(), ViewId(g, camera)
+        )
         for g in groups
     ]
 
@@ -81,11 +85,20 @@ def novel_ring(calibration, ring: list[RingView], per_gap: int) -> list[RingView
         for j in range(1, per_gap + 1):
             angle = step * j / (per_gap + 1)
             cam = rotate_about_axis(rv.camera, axis, point, angle)
-            out.append(RingView(f"{rv.name}_p{angle:05.1f}".replace(".", "p"), f"novel: {rv.label} +{angle:.1f} deg", cam, None))
+            out.append(
+                RingView(
+                    f"{rv.name}_p{angle:05.1f}".replace(".", "p"),
+                    f"novel: {rv.label} +{angle:.1f} deg",
+                    cam,
+                    None,
+                )
+            )
     return out
 
 
-def rotate_about_axis(camera: PinholeCamera, axis: np.ndarray, point: np.ndarray, angle_deg: float) -> PinholeCamera:
+def rotate_about_axis(
+    camera: PinholeCamera, axis: np.ndarray, point: np.ndarray, angle_deg: float
+) -> PinholeCamera:
     """The camera carried rigidly about the axis (direction, point) by `angle_deg` (right-handed): the
     turntable's rotation from one group to the next."""
     rot = rotation_axis_angle(axis, np.deg2rad(angle_deg))
@@ -122,7 +135,9 @@ def capture_basis(
 
     lights = captured_lights(work, view)
     if not lights:
-        raise LightstageError(f"{work.frame(FrameId(view.group, view.camera, 0)).parent}: no processed frames")
+        raise LightstageError(
+            f"{work.frame(FrameId(view.group, view.camera, 0)).parent}: no processed frames"
+        )
     dirs = calibration.light_directions(view.group)
     if max(lights) >= len(dirs):
         raise LightstageError(
