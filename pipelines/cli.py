@@ -32,6 +32,7 @@ COMMAND_MODULES = (
     "lightstage.dataset.cli",
     "lightstage.interop.cli",
     "lightstage.training.cli",
+    "lightstage.viewer.cli",
     "lightstage.pipelines.commands",
 )
 
@@ -55,7 +56,7 @@ LOCKING_COMMANDS = {
     "eval": False,
     "import": True,  # writes a new WORK from an external dataset
 }
-READ_ONLY_COMMANDS = frozenset({"relight", "render", "mesh", "export"})  # they write to --out
+READ_ONLY_COMMANDS = frozenset({"relight", "render", "mesh", "export", "view"})  # write --out / WORK/viewer
 
 
 def build_parser() -> argparse.ArgumentParser:
