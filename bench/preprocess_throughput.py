@@ -232,6 +232,61 @@ def breakdown(paths: list[Path], tmp: Path) -> dict[str, dict[str, float]]:
     }
 
 
+def interleaved(paths: list[Path], tmp: Path, rounds: int) -> dict:
+    """The decode floor and each decoder's whole per-frame path (read-ahead, decode, downscale, pixel verdict,
+    half rounding, write, statistics: what the chunk task does), alternated frame by frame in this process, so
+    all three see the same load; CPU seconds (median) and the per-frame ratio to the floor."""
+    from lightstage.exr_header import prefetch_file
+    from lightstage.frames import pixel_verdict
+    from lightstage.preprocess.downscale import decode_downscale, decode_raw, downscale
+    from lightstage.preprocess.flare import lit_threshold, thumbnail
+    from lightstage.preprocess.frame_task import check_finite
+    from lightstage.preprocess.stats import StatsAccumulator
+    from lightstage.records.processed import HalfRounder, write_processed
+    from lightstage.tonemap import luminance
+
+    h, w = RES[1] // 4, RES[0] // 4
+    acc, rounder = StatsAccumulator(h, w, 4.4019), HalfRounder(h, w)
+
+    def frame_path(p: Path, i: int, decoder: str) -> None:
+        prefetch_file(p, 120.0)
+        small = (
+            decode_downscale(p, RES, 4.4019, 32)
+            if decoder == "bands"
+            else downscale(decode_raw(p, RES), 4.4019, 32)
+        )
+        assert pixel_verdict(small.non_finite, small.negative).ok
+        check_finite(small.rgb, str(p))
+        write_processed(tmp / "ab.exr", rounder(small.rgb), small.saturated, "none")
+        lum = luminance(small.rgb)
+        th = thumbnail(lum, small.saturated, 8)
+        acc.add(i, small.rgb, small.saturated, lit_threshold(th, 4.4019, 4.0, 2**-13), lum)
+
+    def floor(p: Path) -> None:
+        import OpenEXR
+
+        OpenEXR.File(str(p)).parts[0].channels["RGB"].pixels  # noqa: B018 - the decode is the point
+
+    samples: dict[str, list[float]] = {"floor": [], "openexr": [], "bands": []}
+    for r in range(rounds + 1):  # the first round warms the page cache
+        p = paths[r % len(paths)]
+        for name, fn in (
+            ("floor", lambda p=p: floor(p)),
+            ("openexr", lambda p=p, r=r: frame_path(p, r, "openexr")),
+            ("bands", lambda p=p, r=r: frame_path(p, r, "bands")),
+        ):
+            c = time.process_time()
+            fn()
+            if r:
+                samples[name].append(time.process_time() - c)
+    f = np.array(samples["floor"])
+    out = {"rounds": rounds, "cpu_s_median": {k: round(float(np.median(v)), 4) for k, v in samples.items()}}
+    out["over_floor_median_of_pairs"] = {
+        k: round(float(np.median(np.array(samples[k]) / f)), 3) for k in ("openexr", "bands")
+    }
+    return out
+
+
 def _worker_peak_rss_mb() -> float:
     """Peak RSS of this process (VmHWM: reset at exec, unlike ru_maxrss which a spawned worker inherits)."""
     for line in Path("/proc/self/status").read_text().splitlines():
@@ -306,6 +361,12 @@ def main() -> None:
     ap.add_argument("--tmp", type=Path, default=None, help="where to put the temp dir (default: system temp)")
     ap.add_argument("--skip-rss-check", action="store_true", help="skip the longer-view memory run")
     ap.add_argument(
+        "--ab-rounds",
+        type=int,
+        default=6,
+        help="frames of the interleaved floor / decoder comparison (default 6)",
+    )
+    ap.add_argument(
         "--long-lights",
         type=int,
         default=0,
@@ -338,6 +399,7 @@ def main() -> None:
         oiio_wall, oiio_cpu = decode_only_oiio(distinct)
         result["decode_only_oiio_bands32_s"] = {"wall": round(oiio_wall, 4), "cpu": round(oiio_cpu, 4)}
         result["breakdown"] = breakdown(distinct, tmp)
+        result["interleaved_per_frame"] = interleaved(distinct, tmp, args.ab_rounds)
         cpu = result["breakdown"]["cpu_s"]
         paths_cpu = {
             "openexr": cpu["read_ahead"] + cpu["decode"] + cpu["downscale"],
