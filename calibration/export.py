@@ -243,6 +243,8 @@ def build_colmap_model(
             for image_id, idx in refs:
                 track.add_element(image_id, idx)
             rec.add_point3D(np.asarray(tracks.xyz[k], float), track, np.asarray(tracks.colors[k], np.uint8))
+    if rec.num_points3D():
+        rec.update_point_3d_errors()  # so the model's own summary reports the reprojection error
     return rec, stats
 
 

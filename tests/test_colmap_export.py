@@ -122,6 +122,7 @@ def test_model_names_files_of_the_camera_size_one_rig_and_tracks(work):
     assert model.compute_num_observations() == 30 * 12 - 1
     errs = _reprojection_errors(model)
     assert errs.size == 359 and errs.max() < 1.0, errs.max()
+    assert 0 < model.compute_mean_reprojection_error() < 1.0
     assert (out / "points3D.ply").is_file()
 
 
