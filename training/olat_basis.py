@@ -25,7 +25,7 @@ def render_olat_basis(
     model,
     camera,
     directions: np.ndarray,
-    chunk: int = 4096,
+    chunk: int = 32768,
     on_chunk: Callable[[int], None] | None = None,
 ) -> np.ndarray:
     """(L, H, W, 3) float32 white-light OLAT images of `camera` for L unit light `directions` (world frame).
@@ -104,7 +104,11 @@ class FactoredTransfer:
         self.base = torch.addmm(
             first.bias, torch.cat([feat, positional_encoding(view, g.dir_freqs)], -1), w[:, : nf + nv].t()
         )
-        self.rest = field.head[1:]
+        # the later layers, Linear weights transposed once; ReLUs run in place on the fresh activations
+        self.rest = [
+            (m, m.weight.t().contiguous()) if isinstance(m, torch.nn.Linear) else (m, None)
+            for m in field.head[1:]
+        ]
 
     @classmethod
     def of(cls, field, feat: torch.Tensor, view: torch.Tensor):
@@ -128,7 +132,14 @@ class FactoredTransfer:
         if self.w_half is not None:
             half = torch.nn.functional.normalize(light[None] - self.view, dim=-1)
             pre = torch.addmm(pre, positional_encoding(half, g.half_freqs), self.w_half.t())
-        return exp_head(self.rest(pre), self.field.cfg.h_max_exponent)
+        for module, weight_t in self.rest:
+            if weight_t is not None:
+                pre = torch.addmm(module.bias, pre, weight_t)
+            elif isinstance(module, torch.nn.ReLU):
+                pre = torch.relu_(pre)
+            else:
+                pre = module(pre)
+        return exp_head(pre, self.field.cfg.h_max_exponent)
 
 
 def _weights(net, field, o: torch.Tensor, d: torch.Tensor, edges: torch.Tensor):

@@ -41,7 +41,7 @@ class ViewerConfig:
     views: int = 0  # calibrated views in the ring, spread over the turntable (0: one per group)
     novel: int = 1  # novel model views between consecutive ring views
     basis_lights: int = 64  # stage lights of the model basis
-    tolerance: float = 0.02  # relative Frobenius error of each view's compressed basis
+    tolerance: float = 0.03  # relative Frobenius error of each view's compressed basis (linear HDR)
     max_components: int = 64
     envmaps: list[str] = field(default_factory=list)  # the user's lat-long HDR maps (the sky is built in)
     envmap_resolution: str = "32x16"

@@ -30,7 +30,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--novel", type=int, default=1, help="novel model views between consecutive ring views")
     p.add_argument("--basis-lights", type=int, default=64, help="stage lights of the model basis")
     p.add_argument(
-        "--tolerance", type=float, default=0.02, help="relative error allowed in each view's compressed basis"
+        "--tolerance", type=float, default=0.03, help="relative error allowed in each view's compressed basis"
     )
     p.add_argument("--max-components", type=int, default=64, help="most basis components kept per view")
     p.add_argument(
