@@ -23,7 +23,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             "Give either a pipeline config (CONFIG.yaml with capture: and work:) or CAPTURE --work WORK."
         ),
     )
-    run.add_argument("target", type=Path, help="a pipeline config (.yaml) or a raw capture directory")
+    run.add_argument(
+        "target",
+        type=Path,
+        help="a pipeline config (.yaml), a raw capture directory, or a work directory (WORK/capture.txt names its capture; an imported one uses WORK/import.yaml)",
+    )
     run.add_argument("--work", type=Path, help="work directory (overrides the config's work:)")
     run.add_argument(
         "--config", type=Path, help="pipeline config when TARGET is a capture (default: built-in)"
@@ -69,17 +73,34 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run_target(args: argparse.Namespace):  # noqa: ANN202 - (PipelineConfig, capture), imported lazily
-    """The pipeline config and capture of `run TARGET`: TARGET is a config file or a capture directory."""
+    """The pipeline config and capture of `run TARGET`: TARGET is a config file, a capture directory, or a work
+    directory that names its capture."""
     from lightstage.errors import LightstageError
     from lightstage.pipelines.config import load_pipeline_config
 
     target: Path = args.target
+    if target.is_dir() and (target / "capture.txt").is_file() and not (target / "stage.yaml").is_file():
+        return _work_dir_target(args, target)
     if target.is_file() or target.suffix in (".yaml", ".yml"):
         if args.config:
             raise LightstageError("give the config either as TARGET or with --config, not both")
         config = load_pipeline_config(target)
         return config, config.capture
     return load_pipeline_config(args.config), str(target)
+
+
+def _work_dir_target(args: argparse.Namespace, work: Path):  # noqa: ANN202 - as _run_target
+    """`run WORK`: a work directory names its capture (WORK/capture.txt); an imported one also its pipeline
+    config (WORK/import.yaml, written by `lightstage import`), used unless --config is given."""
+    import dataclasses
+
+    from lightstage.pipelines.config import load_pipeline_config
+    from lightstage.workdir import WorkDir
+
+    imported = work / "import.yaml"
+    config = load_pipeline_config(args.config or (imported if imported.is_file() else None))
+    capture = str(WorkDir.at(work).capture_path())
+    return dataclasses.replace(config, work=str(work), capture=capture), capture
 
 
 def _run_work(args: argparse.Namespace) -> Path | None:
