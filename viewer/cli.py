@@ -41,6 +41,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--envmap-resolution", default="32x16", help="envmap resampling WIDTHxHEIGHT")
     p.add_argument("--orbit-views", type=int, default=12, help="model views without a calibration (an orbit)")
+    p.add_argument("--orbit-size", default="256x192", help="WIDTHxHEIGHT of those orbit views")
     p.add_argument("--checkpoint", default=None, help="checkpoint file (default: WORK/train/checkpoint.pt)")
     add_device(p)
     p.add_argument("--rebuild", action="store_true", help="rebuild WORK/viewer even when it is up to date")
@@ -75,6 +76,7 @@ def _view(args: argparse.Namespace) -> int:
         envmaps=list(args.envmap),
         envmap_resolution=args.envmap_resolution,
         orbit_views=args.orbit_views,
+        orbit_size=args.orbit_size,
         checkpoint=args.checkpoint,
         device=device,
     )

@@ -53,6 +53,7 @@ def view_entry(rv: RingView, comp: CompressedBasis, basis: int, file: str, **ext
         "file": file,
         "coefficients": [float(v) for v in comp.coefficients.reshape(-1)],
         "basis": basis,
+        "ab": None,  # the capture set's view of the same id, when built (build._link_ab)
         **extra,
     }
 
