@@ -100,7 +100,8 @@ def run_demo(
     results = run_pipeline(work, config, capture=capture, progress=progress)
     timings = {r.stage: round(r.seconds, 1) for r in results}
     relit = relight(work, progress)
-    report = write_report(work, timings, relit, time.perf_counter() - t0, _describe(settings))
+    viewer = build_demo_viewer(work, progress)
+    report = write_report(work, timings, relit, time.perf_counter() - t0, _describe(settings), viewer)
     _say(f"demo: finished in {time.perf_counter() - t0:.0f} s")
     print(f"demo report: {report}")
     print(f"  pictures:  {work.root / 'report'}")
@@ -146,6 +147,54 @@ def relight(work: WorkDir, progress: bool) -> dict[str, Any]:
     _say(f"demo: relighting with {envmap.name} ({RELIGHT_LIGHTS} median-cut lights)")
     config = RelightConfig(envmap=str(envmap), lights=RELIGHT_LIGHTS, out=str(out))
     return run_relight(work, config, progress=progress)
+
+
+# The demo's viewer: 3 calibrated views of the ring with a novel view after each, 32 stage lights for the model
+# (about 30 CPU-s on the demo model; `lightstage view WORK` builds the fuller default ring).
+DEMO_VIEWER = {"views": 3, "novel": 1, "basis_lights": 32}
+
+
+def build_demo_viewer(work: WorkDir, progress: bool) -> dict[str, Any]:
+    """WORK/viewer: the relighting viewer of the demo's capture and model (reused when up to date)."""
+    from lightstage.viewer.build import ViewerConfig, build_key, build_viewer, is_current
+
+    config = ViewerConfig(**DEMO_VIEWER)
+    bundle = work.root / "viewer"
+    if is_current(bundle, build_key(work, config)):
+        return json.loads((bundle / "manifest.json").read_text())
+    _say("demo: building the relighting viewer (WORK/viewer)")
+    return build_viewer(work, config, bundle, progress=progress)
+
+
+def _viewer_lines(work: WorkDir, manifest: dict[str, Any] | None) -> list[str]:
+    """The report's section on the viewer: how to open it and what it holds."""
+    lines = ["", "## Interactive relighting viewer", ""]
+    if not manifest:
+        return lines + ["(no viewer was built)"]
+    build = manifest.get("build", {})
+    lines += [
+        f"Open it with `lightstage view {work.root}` (serves `{work.root / 'viewer'}` on "
+        "http://127.0.0.1:8023/; `--port N` for another port), or put the folder on any web server "
+        f"(`python -m http.server -d {work.root / 'viewer'}`): a browser cannot load it from `file://`. Drag the "
+        "light on the map, turn the environment map, change the exposure; A/B compares with the captured frame.",
+        "",
+        "| source | views | basis lights | components per view | basis error |",
+        "|---|---|---|---|---|",
+    ]
+    for s in manifest.get("sets", []):
+        views = s.get("views", [])
+        ks = [v["components"] for v in views] or [0]
+        errs = [v["relative_error"] for v in views] or [0.0]
+        lines.append(
+            f"| {s.get('description', s.get('source'))} | {len(views)} | {s.get('basis_lights')} | "
+            f"{min(ks)}-{max(ks)} | <= {100 * max(errs):.2f} % |"
+        )
+    lines += [
+        "",
+        f"Bundle: {build.get('bytes', 0) / 1e6:.1f} MB, built in {build.get('wall_seconds', 0):.0f} s "
+        f"({build.get('cpu_seconds', 0):.0f} CPU-s). Docs: docs/viewer.md.",
+    ]
+    return lines
 
 
 # ---- the report ------------------------------------------------------------------------------------------
@@ -400,7 +449,12 @@ def _calibration_table(cal: dict[str, Any]) -> list[str]:
 
 
 def write_report(
-    work: WorkDir, timings: dict[str, float], relit: dict[str, Any], seconds: float, preset: str
+    work: WorkDir,
+    timings: dict[str, float],
+    relit: dict[str, Any],
+    seconds: float,
+    preset: str,
+    viewer: dict[str, Any] | None = None,
 ) -> Path:
     """WORK/report.md plus PNGs in WORK/report/: masks, camera layout, predictions vs truth, relit image."""
     from lightstage.frames import write_image
@@ -476,6 +530,7 @@ def write_report(
         )
     else:
         lines.append("(no relit image)")
+    lines += _viewer_lines(work, viewer)
     path = work.root / "report.md"
     write_text_atomic(path, "\n".join(lines) + "\n")
     return path

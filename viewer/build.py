@@ -23,12 +23,12 @@ from typing import Any
 
 from lightstage.config import load
 from lightstage.errors import LightstageError
+from lightstage.viewer.sets import ROTATION_STEPS, capture_set, model_set, write_envmaps
 from lightstage.workdir import WorkDir
 
 FORMAT_VERSION = 1
 STATIC = Path(__file__).resolve().parent / "static"
 STATIC_FILES = ("index.html", "viewer.js", "viewer.css")
-ROTATION_STEPS = 360
 SOURCES = ("auto", "capture", "model", "both")
 
 
@@ -153,8 +153,6 @@ def build_viewer(
         shutil.rmtree(tmp)
     (tmp / "data").mkdir(parents=True)
     (tmp / "env").mkdir()
-    from lightstage.viewer.sets import capture_set, model_set, write_envmaps
-
     sets = []
     if "capture" in sources:
         sets.append(capture_set(work, scene, config, tmp, progress))

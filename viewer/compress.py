@@ -85,15 +85,24 @@ def compress_basis(
     x0, y0, w, h = content_crop(imgs) if crop else (0, 0, W, H)
     m = imgs[:, y0 : y0 + h, x0 : x0 + w].reshape(L, -1).astype(np.float64)  # lights x (pixels * 3)
     norm = float(np.linalg.norm(m))
-    u, s, vt = np.linalg.svd(m, full_matrices=False)
-    limit = min(max_components, len(s))
+    s, vecs = _singular(m)
+    limit = min(max_components, int(np.count_nonzero(s > s[0] * 1e-7)) if s[0] > 0 else 1)
     k = min(rank_for(s, tolerance), limit)
     while True:
-        comp, coef, err = _fit(m, vt[:k], norm)
+        comp, coef, err = _fit(m, (vecs[:, :k].T @ m) / np.maximum(s[:k, None], 1e-300), norm)
         if err <= tolerance or k >= limit:
             break
         k += 1
     return CompressedBasis(comp.reshape(k, h, w, 3), coef, (x0, y0, w, h), H, W, err)
+
+
+def _singular(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Singular values (descending) and left singular vectors of a wide lights x values matrix, from its small
+    L x L Gram matrix (several times cheaper than an SVD of the wide matrix; the components kept lie far
+    above the precision the squaring costs)."""
+    evals, evecs = np.linalg.eigh(m @ m.T)
+    order = np.argsort(evals)[::-1]
+    return np.sqrt(np.clip(evals[order], 0.0, None)), evecs[:, order]
 
 
 def _fit(m: np.ndarray, rows: np.ndarray, norm: float) -> tuple[np.ndarray, np.ndarray, float]:
@@ -101,7 +110,7 @@ def _fit(m: np.ndarray, rows: np.ndarray, norm: float) -> tuple[np.ndarray, np.n
     peak = np.maximum(np.abs(rows).max(axis=1, keepdims=True), 1e-300)
     comp = (rows / peak).astype(np.float16)
     c = comp.astype(np.float64)
-    coef = np.linalg.lstsq(c.T, m.T, rcond=None)[0]  # (k, L): m ~= coef.T @ c
+    coef = np.linalg.solve(c @ c.T, c @ m.T)  # (k, L) least squares: m ~= coef.T @ c (normal equations)
     coef32 = coef.astype(np.float32)
     resid = m - coef32.astype(np.float64).T @ c
     err = float(np.linalg.norm(resid) / norm) if norm > 0 else 0.0

@@ -12,6 +12,7 @@ from lightstage.training.light_basis import LightBasis
 from lightstage.viewer.compress import CompressedBasis, compress_basis
 from lightstage.viewer.sources import RingView
 
+ROTATION_STEPS = 360  # rows of an envmap weight table: one per degree
 DEFAULT_AZIMUTH_DEG = 45.0  # the page's initial point light (and lightstage.viewer.reference's)
 DEFAULT_ELEVATION_DEG = 30.0
 
@@ -171,7 +172,6 @@ def write_envmaps(envmaps, sets: list[dict[str, Any]], olat_factor: float, bundl
     from lightstage.tonemap import auto_exposure, tonemap_u8
     from lightstage.training.envmap import resample
     from lightstage.training.light_basis import rotation_table
-    from lightstage.viewer.build import ROTATION_STEPS
 
     out = []
     jobs = [(n, e) for n, e in envmaps]
