@@ -149,9 +149,9 @@ def relight(work: WorkDir, progress: bool) -> dict[str, Any]:
     return run_relight(work, config, progress=progress)
 
 
-# The demo's viewer: 3 calibrated views of the ring with a novel view after each, 32 stage lights for the model
-# (about 30 CPU-s on the demo model; `lightstage view WORK` builds the fuller default ring).
-DEMO_VIEWER = {"views": 3, "novel": 1, "basis_lights": 32}
+# The demo's viewer: 3 calibrated views of the ring with a novel view after each, 24 stage lights for the model
+# (25-60 CPU-s on the demo model with the machine idle or busy; `lightstage view WORK` builds the full default).
+DEMO_VIEWER = {"views": 3, "novel": 1, "basis_lights": 24}
 
 
 def build_demo_viewer(work: WorkDir, progress: bool) -> dict[str, Any]:
