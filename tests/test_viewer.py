@@ -264,3 +264,16 @@ def test_ab_shows_the_captured_frame_of_the_snapped_light(page, capture_work):
 def _azel(az: float, el: float) -> list[float]:
     a, e = np.deg2rad(az), np.deg2rad(el)
     return [np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)]
+
+
+def test_capture_lights_picks_a_spread_subset_and_oversized_bases_are_refused(capture_work, tmp_path):
+    from lightstage.viewer.sources import check_basis_size
+
+    manifest = build_viewer(
+        capture_work, ViewerConfig(source="capture", views=1, capture_lights=5), tmp_path / "v", False
+    )
+    (basis,) = manifest["sets"][0]["bases"]
+    assert basis["lights"] == 5 and len(set(basis["light_indices"])) == 5
+    assert manifest["sets"][0]["views"][0]["coefficients"].__len__() % 5 == 0
+    with pytest.raises(LightstageError, match="GiB per view"):
+        check_basis_size(331, 2048, 1366, "view 000/cam00")

@@ -208,15 +208,18 @@ def stage_directions(light_directions: dict[str, np.ndarray], count: int) -> np.
     )
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
     d = _dedupe(d)
-    if count >= len(d):
-        return d
+    return d if count >= len(d) else d[farthest_points(d, count)]
+
+
+def farthest_points(d: np.ndarray, count: int) -> list[int]:
+    """Indices of `count` unit directions spread over `d`: farthest-point sampling from the highest one."""
     chosen = [int(np.argmax(d[:, 2]))]
     dist = 1.0 - d @ d[chosen[0]]
-    for _ in range(count - 1):
+    for _ in range(min(count, len(d)) - 1):
         k = int(np.argmax(dist))
         chosen.append(k)
         dist = np.minimum(dist, 1.0 - d @ d[k])
-    return d[chosen]
+    return chosen
 
 
 def _dedupe(d: np.ndarray, tol: float = 1e-6) -> np.ndarray:

@@ -41,6 +41,7 @@ class ViewerConfig:
     views: int = 0  # calibrated views in the ring, spread over the turntable (0: one per group)
     novel: int = 1  # novel model views between consecutive ring views
     basis_lights: int = 64  # stage lights of the model basis
+    capture_lights: int = 0  # most captured lights per view (0: every frame; a spread subset otherwise)
     tolerance: float = 0.03  # relative Frobenius error of each view's compressed basis (linear HDR)
     max_components: int = 64
     envmaps: list[str] = field(default_factory=list)  # the user's lat-long HDR maps (the sky is built in)
@@ -64,8 +65,8 @@ class ViewerConfig:
             raise LightstageError(f"--tolerance must be in [0, 1), got {self.tolerance}")
         if self.basis_lights < 1 or self.max_components < 1 or self.orbit_views < 1:
             raise LightstageError("--basis-lights, --max-components and --orbit-views must be >= 1")
-        if self.views < 0 or self.novel < 0:
-            raise LightstageError("--views and --novel must be >= 0")
+        if self.views < 0 or self.novel < 0 or self.capture_lights < 0:
+            raise LightstageError("--views, --novel and --capture-lights must be >= 0")
 
 
 def build_key(work: WorkDir, config: ViewerConfig) -> dict[str, Any]:

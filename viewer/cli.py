@@ -30,6 +30,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--novel", type=int, default=1, help="novel model views between consecutive ring views")
     p.add_argument("--basis-lights", type=int, default=64, help="stage lights of the model basis")
     p.add_argument(
+        "--capture-lights",
+        type=int,
+        default=0,
+        help="most captured lights per view (0: all; else a spread subset)",
+    )
+    p.add_argument(
         "--tolerance", type=float, default=0.03, help="relative error allowed in each view's compressed basis"
     )
     p.add_argument("--max-components", type=int, default=64, help="most basis components kept per view")
@@ -71,6 +77,7 @@ def _view(args: argparse.Namespace) -> int:
         views=args.views,
         novel=args.novel,
         basis_lights=args.basis_lights,
+        capture_lights=args.capture_lights,
         tolerance=args.tolerance,
         max_components=args.max_components,
         envmaps=list(args.envmap),

@@ -81,7 +81,7 @@ def capture_set(work, scene, config, bundle: Path, progress: bool) -> dict[str, 
     entries: list[dict[str, Any]] = []
     views, first = [], None
     for rv in tqdm(ring, desc="viewer: capture basis", unit="view", disable=not progress, leave=False):
-        dirs, frames, lights = capture_basis(work, calib, rv.view)
+        dirs, frames, lights = capture_basis(work, calib, rv.view, config.capture_lights or None)
         key = (rv.view.group, tuple(lights))
         if key not in keys:
             keys.append(key)
@@ -114,7 +114,14 @@ def model_set(work, scene, config, bundle: Path, progress: bool, model: Any = No
     from lightstage.training.inference import load_trained
     from lightstage.training.light_basis import stage_basis
     from lightstage.training.olat_basis import render_olat_basis
-    from lightstage.viewer.sources import calibrated_ring, novel_ring, orbit_ring, ring_camera, ring_groups
+    from lightstage.viewer.sources import (
+        calibrated_ring,
+        check_basis_size,
+        novel_ring,
+        orbit_ring,
+        ring_camera,
+        ring_groups,
+    )
 
     if model is None:
         model = load_trained(work, config.checkpoint, config.device)
@@ -141,6 +148,7 @@ def model_set(work, scene, config, bundle: Path, progress: bool, model: Any = No
             bar.update((n - done[0]) / rays)
             done[0] = n
 
+        check_basis_size(len(basis), rv.camera.width, rv.camera.height, f"view {rv.label}")
         images = render_olat_basis(model, rv.camera, basis.directions, on_chunk=tick)
         comp = compress_basis(images, config.tolerance, config.max_components, crop=True)
         file = f"data/model/{rv.name}.bin"

@@ -126,12 +126,31 @@ def captured_lights(work: WorkDir, view: ViewId) -> list[int]:
     return sorted(int(p.stem) for p in folder.glob("*.exr") if p.stem.isdigit())
 
 
+MAX_BASIS_BYTES = 4 << 30  # float32 basis images of one view held in memory at once
+
+
+def check_basis_size(count: int, width: int, height: int, what: str) -> None:
+    """One clear error, before any work, when a view's basis images would not fit in memory."""
+    need = count * width * height * 3 * 4
+    if need > MAX_BASIS_BYTES:
+        raise LightstageError(
+            f"{what}: {count} basis images of {width}x{height} need {need / 2**30:.1f} GiB per view "
+            f"(limit {MAX_BASIS_BYTES / 2**30:.0f} GiB); use fewer --basis-lights"
+        )
+
+
 def capture_basis(
-    work: WorkDir, calibration, view: ViewId, progress: Callable[[int], None] | None = None
+    work: WorkDir,
+    calibration,
+    view: ViewId,
+    max_lights: int | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[int]]:
     """(directions (L, 3), frames (L, H, W, 3) float32 linear HDR, light indices) of one calibrated view's
-    processed OLAT frames; the directions are the calibrated lights of the view's group."""
+    processed OLAT frames; the directions are the calibrated lights of the view's group. With more frames than
+    `max_lights`, that many lights spread over the group's (farthest-point sampling)."""
     from lightstage.records.processed import read_processed
+    from lightstage.training.light_basis import farthest_points
 
     lights = captured_lights(work, view)
     if not lights:
@@ -143,6 +162,11 @@ def capture_basis(
         raise LightstageError(
             f"view {view}: frame of light {max(lights)} but the calibration has {len(dirs)} lights in group {view.group}"
         )
+    if max_lights is not None and len(lights) > max_lights:
+        picked = farthest_points(np.asarray(dirs, np.float64)[lights], max_lights)
+        lights = sorted(lights[i] for i in picked)
+    cam = calibration.views[view].camera()
+    check_basis_size(len(lights), cam.width, cam.height, f"view {view}")
     frames = []
     for i, light in enumerate(lights):
         frames.append(read_processed(work.frame(FrameId(view.group, view.camera, light)))[0])
