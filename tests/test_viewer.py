@@ -106,6 +106,13 @@ def test_cli_exports_reuses_and_refuses_bad_input(capture_work, tmp_path, capsys
     assert main(args) == 0 and (out / "manifest.json").is_file()
     assert "wrote" in capsys.readouterr().out
     assert main(args) == 0 and "up to date" in capsys.readouterr().out
+    # no build options: the bundle's own (the demo's, say) are kept, not the defaults; a killed build's
+    # leftovers are removed by the next build
+    assert main(["view", str(capture_work.root), "--export", str(out), "-q"]) == 0
+    assert "up to date" in capsys.readouterr().out
+    (tmp_path / ".site.tmp-999999999").mkdir()
+    assert main([*args, "--rebuild"]) == 0 and not (tmp_path / ".site.tmp-999999999").exists()
+    capsys.readouterr()
     assert main(["view", str(capture_work.root), "--source", "model", "--export", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "lightstage: error:" in err and "checkpoint" in err

@@ -82,7 +82,8 @@ def build_key(work: WorkDir, config: ViewerConfig) -> dict[str, Any]:
     ckpt = Path(config.checkpoint) if config.checkpoint else work.train_dir / "checkpoint.pt"
     inputs = {"checkpoint": stamp(ckpt), "calibration": stamp(work.calibration)}
     inputs.update({f"envmap:{p}": stamp(Path(p)) for p in config.envmaps})
-    return {"format": FORMAT_VERSION, "config": asdict(config), "inputs": inputs}
+    options = {k: v for k, v in asdict(config).items() if k != "device"}  # where it ran changes nothing
+    return {"format": FORMAT_VERSION, "config": options, "inputs": inputs}
 
 
 def is_current(bundle: Path, key: dict[str, Any]) -> bool:
@@ -150,10 +151,33 @@ def build_viewer(
     envmaps = load_envmaps(config)
     bundle = Path(bundle)
     tmp = bundle.with_name(f".{bundle.name}.tmp-{os.getpid()}")
-    if tmp.exists():
-        shutil.rmtree(tmp)
+    _remove_stale(bundle)
     (tmp / "data").mkdir(parents=True)
     (tmp / "env").mkdir()
+    try:
+        return _build_into(tmp, bundle, work, config, scene, sources, envmaps, progress, model, t_wall, t_cpu)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _remove_stale(bundle: Path) -> None:
+    """Remove half-built bundles beside `bundle` left by killed builds (their process is gone) and our own."""
+    for old in bundle.parent.glob(f".{bundle.name}.tmp-*") if bundle.parent.is_dir() else ():
+        try:
+            pid = int(old.name.rsplit("-", 1)[1])
+            if pid != os.getpid():
+                os.kill(pid, 0)
+                continue  # a live build
+        except ProcessLookupError:
+            pass
+        except (ValueError, PermissionError):
+            continue
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _build_into(tmp, bundle, work, config, scene, sources, envmaps, progress, model, t_wall, t_cpu):
+    """The body of `build_viewer`: the sets, envmaps and static files into `tmp`, then moved to `bundle`."""
     sets = []
     if "capture" in sources:
         sets.append(capture_set(work, scene, config, tmp, progress))

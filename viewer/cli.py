@@ -91,6 +91,10 @@ def _view(args: argparse.Namespace) -> int:
         if not Path(path).is_file():
             raise LightstageError(f"{path}: envmap file not found")
     bundle = Path(args.export) if args.export else work.root / "viewer"
+    if not args.rebuild and config == ViewerConfig(device=device):
+        config = _recorded_config(
+            bundle, config
+        )  # no build options given: keep the bundle's (e.g. the demo's)
     if args.rebuild or not is_current(bundle, build_key(work, config)):
         manifest = build_viewer(work, config, bundle, progress=not args.quiet)
         _summary(bundle, manifest)
@@ -102,6 +106,20 @@ def _view(args: argparse.Namespace) -> int:
 
     serve(bundle, args.port)
     return 0
+
+
+def _recorded_config(bundle, default):
+    """The options an existing bundle was built with (its inputs are still checked), else `default`."""
+    import json
+
+    from lightstage.errors import LightstageError
+    from lightstage.viewer.build import ViewerConfig
+
+    try:
+        recorded = json.loads((bundle / "manifest.json").read_text())["build"]["key"]["config"]
+        return ViewerConfig.from_dict({**recorded, "device": default.device})
+    except (OSError, ValueError, KeyError, TypeError, LightstageError):
+        return default
 
 
 def _summary(bundle, manifest) -> None:
