@@ -73,6 +73,18 @@ class PipelineConfig:
     stages: dict[str, dict[str, Any]] = field(default_factory=lambda: {s: {} for s in STAGE_ORDER})
     source: str = "<defaults>"
 
+    def __post_init__(self) -> None:
+        require(
+            self.cluster.workers >= 0,
+            "cluster.workers",
+            f"expected an integer >= 0, got {self.cluster.workers}",
+        )
+        require(
+            self.cluster.threads_per_worker >= 1,
+            "cluster.threads_per_worker",
+            f"expected an integer >= 1, got {self.cluster.threads_per_worker}",
+        )
+
     @classmethod
     def from_dict(cls, data: Any, source: str = "<config>") -> PipelineConfig:
         """Read a parsed pipeline config with the strict loader (top-level keys, cluster, launch, demo,
@@ -87,7 +99,7 @@ class PipelineConfig:
             for k, v in data.items()
             if k not in STAGE_ORDER
         }
-        top = load(_TopLevel, own, source)
+        top = load(cls, own, source)  # TOP_KEYS keeps `stages` and `source` out of the file
         for key in top.entry_points:
             if key not in STAGE_ORDER:
                 raise UnknownKeyError(("entry_points", key), STAGE_ORDER, source)
@@ -97,7 +109,7 @@ class PipelineConfig:
             if section is not None and not isinstance(section, dict):
                 raise ConfigError(f"expected a mapping of parameters, got {section!r}", name, source)
             stages[name] = dict(section or {})
-        return cls(top.capture, top.work, top.cluster, top.launch, top.demo, top.entry_points, stages, source)
+        return dataclasses.replace(top, stages=stages, source=source)
 
     def with_overrides(self, **changes: Any) -> PipelineConfig:
         """A copy with top-level fields replaced (None values are ignored)."""
@@ -169,30 +181,6 @@ def config_hash(config: Any, implementation: str = "") -> str:
     """A stable hash of a stage's effective config (and which implementation ran it)."""
     payload = json.dumps({"config": config_as_data(config), "impl": implementation}, sort_keys=True)
     return hashlib.sha256(payload.encode()).hexdigest()[:16]
-
-
-@dataclass(frozen=True)
-class _TopLevel:
-    """The pipeline config's own keys (the stage sections are read by each stage's config class)."""
-
-    capture: str | None = None
-    work: str | None = None
-    cluster: ClusterSettings = field(default_factory=ClusterSettings)
-    launch: LaunchSettings = field(default_factory=LaunchSettings)
-    demo: DemoSettings = field(default_factory=DemoSettings)
-    entry_points: dict[str, str] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        require(
-            self.cluster.workers >= 0,
-            "cluster.workers",
-            f"expected an integer >= 0, got {self.cluster.workers}",
-        )
-        require(
-            self.cluster.threads_per_worker >= 1,
-            "cluster.threads_per_worker",
-            f"expected an integer >= 1, got {self.cluster.threads_per_worker}",
-        )
 
 
 def validate_pipeline_config(config: PipelineConfig, capture: str | os.PathLike[str] | None) -> None:
