@@ -17,6 +17,7 @@ from lightstage.errors import LightstageError
 from lightstage.training.inference import RelightableModel
 from lightstage.training.view_specs import (
     LightQuery,
+    ModelViewOptions,
     downscale_camera,
     load_scene_info,
     parse_camera,
@@ -28,19 +29,12 @@ from lightstage.workdir import WorkDir
 
 
 @dataclass
-class RenderConfig:
-    """Options of `lightstage render`."""
+class RenderConfig(ModelViewOptions):
+    """Options of `lightstage render` (besides the ones it shares with `relight`, ModelViewOptions)."""
 
     camera: str = "orbit"
     light: str = "dir:0,0,1"
     orbit: int = 0  # frames of a full turn about +z through the scene-bounds centre (0 = one image)
-    fps: float = 24.0
-    downscale: int = 1
-    exposure: float | None = None
-    checkpoint: str | None = None
-    device: str = "cpu"
-    light_distance: float | None = None
-    light_intensity: float = 1.0
     out: str = "render"
 
     @classmethod

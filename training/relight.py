@@ -18,7 +18,7 @@ from lightstage.config import load
 from lightstage.errors import LightstageError
 from lightstage.training.envmap import EnvMap, Lights
 from lightstage.training.inference import RelightableModel, load_trained
-from lightstage.training.view_specs import write_hdr
+from lightstage.training.view_specs import ModelViewOptions, write_hdr
 from lightstage.workdir import WorkDir
 
 
@@ -109,8 +109,9 @@ def parse_lights_option(text: str | int | list) -> list[int | str]:
 
 
 @dataclass
-class RelightConfig:
-    """Options of `lightstage relight`."""
+class RelightConfig(ModelViewOptions):
+    """Options of `lightstage relight` (besides the ones it shares with `render`, ModelViewOptions; `fps` is
+    the rotate-sweep video's)."""
 
     envmap: str = ""
     lights: str | int = "64"  # a power of two, or a comma list of powers of two and/or 'all'
@@ -118,13 +119,6 @@ class RelightConfig:
     resolution: str = "32x16"
     rotate_deg: float = 0.0
     rotate_sweep: int = 0  # frames of one full turn of the envmap about +z (first camera and count; 0 = off)
-    fps: float = 24.0  # of the rotate-sweep video
-    downscale: int = 1
-    exposure: float | None = None
-    checkpoint: str | None = None
-    device: str = "cpu"
-    light_distance: float | None = None
-    light_intensity: float = 1.0
     out: str = "relight"
 
     @classmethod

@@ -25,6 +25,20 @@ if TYPE_CHECKING:
 DEFAULT_LIGHT_DISTANCE = 1.5
 
 
+@dataclass
+class ModelViewOptions:
+    """The options `render` and `relight` share: video frame rate, output downscale and exposure, which
+    checkpoint on which device, and the capture's light distance and intensity (docs/relighting.md)."""
+
+    fps: float = 24.0
+    downscale: int = 1
+    exposure: float | None = None
+    checkpoint: str | None = None
+    device: str = "cpu"
+    light_distance: float | None = None
+    light_intensity: float = 1.0
+
+
 @dataclass(frozen=True)
 class SceneInfo:
     """What camera and light specs need besides the model: the calibration (if any), the centre that light
