@@ -203,10 +203,16 @@ def bulb_pixels(scene: SimScene, cam: PinholeCamera, p: np.ndarray) -> tuple[np.
     return rows[free], cols[free]
 
 
-def add_flare(img: np.ndarray, scene: SimScene, cam: PinholeCamera, p: np.ndarray, intensity: float) -> float:
+def add_flare(
+    img: np.ndarray, scene: SimScene, cam: PinholeCamera, p: np.ndarray, intensity: float | np.ndarray
+) -> float:
     """Add lens flare (glow + horizontal streak + ghost) in place for a light behind the object near the view
-    direction; returns its strength (0: none). Separable profiles keep it cheap; linear in the intensity."""
+    direction; returns its strength (0: none; for the mean of an RGB intensity). Separable profiles keep it
+    cheap; linear in the intensity, per channel (a tinted LED's flare has its tint, so dividing the LED's
+    intensity out of the frame leaves the flare of a white LED)."""
     nz = scene.nuisances
+    rgb = np.broadcast_to(np.asarray(intensity, np.float64), (3,))
+    intensity = float(rgb.mean())
     to_light = p - cam.center
     dist = float(np.linalg.norm(to_light))
     cos_axis = float(cam.R[2] @ to_light) / dist
@@ -249,7 +255,8 @@ def add_flare(img: np.ndarray, scene: SimScene, cam: PinholeCamera, p: np.ndarra
         if rows.max() < 1e-7:
             continue
         for c in range(3):
-            img[..., c] += np.outer(rows, (strength * weight * colour[c] * cols).astype(np.float32))
+            tint = colour[c] * (rgb[c] / intensity if intensity > 0 else 1.0)
+            img[..., c] += np.outer(rows, (strength * weight * tint * cols).astype(np.float32))
     return float(strength)
 
 
@@ -332,7 +339,7 @@ def render_view(job: ViewJob) -> ViewRecord:
             lit_bg[mask] = 0.0  # hidden behind the object and stand
             img += lit_bg
         img.reshape(-1, 3)[hits.index] += radiance  # the background is 0 under the mask
-        strength = add_flare(img, scene, cam, p, scene.light_intensity * float(gain.mean()))
+        strength = add_flare(img, scene, cam, p, scene.light_intensity * gain)
         if strength > 0:
             flares[lid] = strength
         bulb = bulb_pixels(scene, cam, p)

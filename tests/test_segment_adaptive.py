@@ -238,3 +238,22 @@ def test_stage_yaml_light_intensity_and_direction(tmp_path: Path, tiny_capture: 
     bad["lights"][0] = {"index": 0, "position": [0, 0, 1.5], "direction": [0, 0, 1]}
     with pytest.raises(LightstageError, match="either position"):
         stage_from_dict(bad)
+
+
+def test_lens_flare_takes_the_leds_colour_per_channel() -> None:
+    """A tinted LED's flare is the white LED's flare times its RGB intensity (render.add_flare), so dividing the
+    intensity out (preprocess) leaves no tint."""
+    from lightstage.cameras import PinholeCamera
+    from lightstage.simulator.render import add_flare
+
+    scene = sim.default_scene(0, "stage")
+    # a camera 1.5 m out on -y looking at the centre (+y), a light behind the object 3 degrees off its axis
+    R = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
+    cam = PinholeCamera(np.array([[80.0, 0, 32], [0, 80.0, 24], [0, 0, 1]]), R, -R @ [0, -1.5, 0], 64, 48)
+    p = np.array([0.0, 1.5, 1.5 * np.tan(np.radians(3))])
+    white, tinted = np.zeros((48, 64, 3), np.float32), np.zeros((48, 64, 3), np.float32)
+    gain = np.array([1.3, 1.0, 0.7])
+    s_white = add_flare(white, scene, cam, p, 6.0)
+    s_tinted = add_flare(tinted, scene, cam, p, 6.0 * gain)
+    assert s_white > 0 and s_tinted == pytest.approx(s_white)  # same mean intensity, same recorded strength
+    np.testing.assert_allclose(tinted / gain, white, rtol=1e-5, atol=1e-9)
