@@ -337,7 +337,8 @@ def run_stage(capture: Path, work_root: Path, workers: int, chunk_lights: int, c
         "load_before": round(load0, 2),
         "load_after": round(os.getloadavg()[0], 2),
         "errors": summary["errors"],
-        "decoder": report.get("decoder"),
+        "decoder": report.get("decoder"),  # the path that decoded most frames
+        "decoders": report.get("decoders"),  # `auto`: frames per decoder and each worker's probe CPU-s
         "load_during": _load_note(load0, os.getloadavg()[0]),
     }
 

@@ -25,9 +25,10 @@ class PreprocessConfig:
     # frame for the cheapest write; "piz" makes frames ~1/3 smaller for more CPU (docs/benchmarks.md).
     compression: str = "none"
     band_rows: int = 32  # raw rows decoded and downscaled per band (multiple of 4): stays in cache
-    # raw frame decoder, same results: openexr (whole frame, then banded downscale: the decode floor on every
-    # CPU measured, +270 MB per worker) | bands (OpenImageIO scanline bands: never the whole frame in memory)
-    decoder: str = "openexr"
+    # raw frame decoder, same results: auto (each worker times both on its first frames and keeps the cheaper:
+    # which one wins depends on the machine, preprocess/decoder_choice.py) | openexr (whole frame, then banded
+    # downscale; +270 MB per worker) | bands (OpenImageIO scanline bands: never the whole frame in memory)
+    decoder: str = "auto"
     # ---- reliability
     read_timeout_s: float = (
         120.0  # a raw frame not read within this fails the task naming it (stalled storage)
@@ -107,8 +108,8 @@ class PreprocessConfig:
             raise bad("segmentation", "expected adaptive or lit_fraction")
         if self.compression not in COMPRESSIONS:
             raise bad("compression", f"expected one of {', '.join(COMPRESSIONS)}")
-        if self.decoder not in DECODERS:
-            raise bad("decoder", f"expected one of {', '.join(DECODERS)}")
+        if self.decoder not in ("auto", *DECODERS):
+            raise bad("decoder", f"expected one of auto, {', '.join(DECODERS)}")
         if not self.read_timeout_s > 0:
             raise bad("read_timeout_s", "expected a number of seconds > 0")
         if self.band_rows < 4 or self.band_rows % 4:
@@ -179,7 +180,17 @@ class PreprocessConfig:
 
 
 # Settings that change how, not what, a view is computed (the decoders give identical frames).
-_NOT_IN_VIEW_KEY = ("window", "band_rows", "compression", "decoder", "read_timeout_s", "max_bad_fraction")
+# The consistency settings act after the views (the camera step has its own key: camera_task.camera_key).
+_NOT_IN_VIEW_KEY = (
+    "window",
+    "band_rows",
+    "compression",
+    "decoder",
+    "read_timeout_s",
+    "max_bad_fraction",
+    "consistency",
+    "consistency_max_removed",
+)
 
 # Bumped when the statistics or segmentation change meaning, so stale view outputs are recomputed.
 STATS_FORMAT = 3  # 2: frame thumbnails cover whole blocks only; 3: brightness ladder, frames / LED intensity, flare vs the upper quartile

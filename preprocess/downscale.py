@@ -1,11 +1,10 @@
 """Decode a raw frame and make its exact 4x area-average downscale plus the per-pixel saturation flag.
 
-Two decoders give identical results (`DECODERS`, config `decoder`): `openexr` (the default) decodes the whole
-frame with OpenEXR (`decode_raw`) and then downscales it in row bands (`downscale`); `bands` decodes row bands
-with OpenImageIO's scanline reads (`decode_downscale`), so the full frame is never in memory. OpenEXR's decoder
-is the floor on every CPU measured, OpenImageIO's is not (1.06 vs 0.57 CPU-s per 8192x5464 ZIP frame on an
-AMD EPYC VM, about equal on an Intel Xeon one), and the banded downscale of a decoded frame costs 0.06 CPU-s,
-so `openexr` stays within ~1.1x of the decode floor on both (docs/benchmarks.md) for 270 MB more per worker. Row bands are converted half -> float32 with
+Two decoders give identical results (`DECODERS`, config `decoder`): `openexr` decodes the whole frame with
+OpenEXR (`decode_raw`) and then downscales it in row bands (`downscale`); `bands` decodes row bands with
+OpenImageIO's scanline reads (`decode_downscale_factors`), so the full frame is never in memory. Which one is
+cheaper depends on the machine (docs/benchmarks.md), so the default `auto` measures both in each worker
+(`decoder_choice.py`). Row bands are converted half -> float32 with
 PyTorch (vectorised; numpy's half conversion is ~20x slower) into a reused buffer and averaged with
 `cv2.resize(INTER_AREA)`, whose integer-factor path sums each 4x4 block in float32 and scales by 1/16 (a
 power of two, so no extra rounding). Saturation is tested on the raw half bits: for non-negative halfs the
@@ -180,12 +179,27 @@ def decode_downscale(
     Header problems raise a LightstageError naming the file before any pixels are decoded, as in
     `decode_raw`; undecodable pixel data raises one naming the file and the rows.
     """
+    return decode_downscale_factors(path, size, cutoff, band_rows, (factor,))[0]
+
+
+def decode_downscale_factors(
+    path: str | os.PathLike[str],
+    size: tuple[int, int],
+    cutoff: float,
+    band_rows: int,
+    factors: tuple[int, ...],
+) -> list[Downscaled]:
+    """`decode_downscale` at several factors from one banded decode (the processed frame and the SfM image's
+    frame of a chunk task), each exactly `downscale(decode_raw(...), factor=f)`."""
+    import math
+
     import OpenImageIO as oiio
 
     path = Path(path)
     kind = _check_raw_header(path, size)
     W, H = size
-    band_rows = max(factor, band_rows - band_rows % factor)
+    step = math.lcm(*factors)
+    band_rows = max(step, band_rows - band_rows % step)
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         raise LightstageError(f"{path}: cannot open ({oiio_error(oiio.geterror)})")
@@ -196,7 +210,7 @@ def decode_downscale(
         lo, hi = min(idx), max(idx) + 1
         pick = None if idx == list(range(lo, hi)) else [i - lo for i in idx]
         y0 = spec.y
-        scaler = BandDownscaler(size, cutoff, band_rows, factor)
+        scalers = [BandDownscaler(size, cutoff, band_rows, f) for f in factors]
         for y in range(0, H, band_rows):
             n = min(band_rows, H - y)
             band = inp.read_scanlines(0, 0, y0 + y, y0 + y + n, 0, lo, hi, kind)
@@ -204,8 +218,10 @@ def decode_downscale(
                 raise LightstageError(
                     f"{path}: corrupt EXR pixel data in rows {y}-{y + n - 1} ({oiio_error(inp.geterror)})"
                 )
-            scaler.add(band if pick is None else np.ascontiguousarray(band[..., pick]))
-        return scaler.result()
+            band = band if pick is None else np.ascontiguousarray(band[..., pick])
+            for scaler in scalers:
+                scaler.add(band)
+        return [scaler.result() for scaler in scalers]
     finally:
         inp.close()
 

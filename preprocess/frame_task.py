@@ -15,7 +15,8 @@ from lightstage.errors import EnvironmentFault, LightstageError, is_environment_
 from lightstage.exr_header import prefetch_file
 from lightstage.frames import pixel_verdict
 from lightstage.ids import FrameId, ViewId
-from lightstage.preprocess.downscale import Downscaled, decode_downscale, decode_raw, downscale
+from lightstage.preprocess.decoder_choice import process_chooser
+from lightstage.preprocess.downscale import Downscaled, decode_downscale_factors, decode_raw, downscale
 from lightstage.preprocess.jobs import (
     ChunkJob,
     ChunkRecord,
@@ -78,6 +79,8 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
     thumbs, sthumbs, taus = [], [], []
     problems: list[tuple[int, str]] = []
     processed = reused = 0
+    chooser = process_chooser()
+    decoded_before = dict(chooser.counts)
     gains = job.intensities or ((1.0, 1.0, 1.0),) * len(job.lights)
     for light, raw, gain in zip(job.lights, job.raw_paths, gains, strict=True):
         try:
@@ -121,6 +124,8 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
         tuple(problems),
         time.perf_counter() - start,
         time.process_time() - cpu0,
+        decoded={d: n - decoded_before[d] for d, n in chooser.counts.items() if n > decoded_before[d]},
+        decoder_probe=chooser.probe_medians() if cfg.decoder == "auto" else {},
     )
 
 
@@ -167,18 +172,24 @@ def frame_for_stats(
 def decode_frame(job: ChunkJob, raw: str, for_sfm: bool) -> tuple[Downscaled, np.ndarray | None]:
     """Decode a raw frame (read first within the read timeout) into its processed-size downscale and, when
     `for_sfm`, its downscale at the SfM image's factor (x exposure_scale, as sfm_image.sfm_mean_image makes
-    it), both from one decode with the `openexr` decoder; the `bands` decoder leaves the SfM frame to the view."""
+    it), both from one decode, with the configured decoder or the one this process measured cheaper (`auto`,
+    preprocess.decoder_choice)."""
     cfg = job.config
     prefetch_file(raw, cfg.read_timeout_s)
-    if cfg.decoder == "bands":
-        return decode_downscale(raw, job.raw_size, job.cutoff, cfg.band_rows), None
-    pixels = decode_raw(raw, job.raw_size)
-    small = downscale(pixels, job.cutoff, cfg.band_rows)
-    if not for_sfm or job.sfm_factor >= DOWNSCALE:
-        return small, None
-    sfm = downscale(pixels, job.cutoff, cfg.band_rows, job.sfm_factor).rgb
+    factors = (DOWNSCALE, job.sfm_factor) if for_sfm and job.sfm_factor < DOWNSCALE else (DOWNSCALE,)
+
+    def decode(decoder: str) -> list[Downscaled]:
+        if decoder == "bands":
+            return decode_downscale_factors(raw, job.raw_size, job.cutoff, cfg.band_rows, factors)
+        pixels = decode_raw(raw, job.raw_size)
+        return [downscale(pixels, job.cutoff, cfg.band_rows, f) for f in factors]
+
+    outs, _ = process_chooser().run(cfg.decoder, decode)
+    if len(outs) == 1:
+        return outs[0], None
+    sfm = outs[1].rgb
     sfm *= np.float32(job.exposure_scale)
-    return small, sfm
+    return outs[0], sfm
 
 
 def save_array_atomic(path: Path, array: np.ndarray) -> None:

@@ -55,6 +55,8 @@ class ChunkRecord:
     seconds: float = 0.0
     cpu_seconds: float = 0.0  # CPU time of the task's process (all its threads) while it ran
     resumed: bool = False  # the partial statistics already existed
+    decoded: dict[str, int] = field(default_factory=dict)  # raw frames decoded now, per decoder
+    decoder_probe: dict[str, float] = field(default_factory=dict)  # `auto`: median probe CPU-s per decoder
 
 
 @dataclass(frozen=True)

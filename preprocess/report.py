@@ -177,7 +177,9 @@ def build_report(
         "config_key": config.view_key(),
         "processed_size": list(jobs[0].size) if jobs else None,
         "downscale": DOWNSCALE,
-        "decoder": config.decoder,  # which decode path ran (downscale.DECODERS; identical outputs)
+        # the path that decoded most frames, and frames per decoder (identical outputs: decoder_choice.py)
+        "decoder": decoder_ran(config.decoder, chunk_results),
+        "decoders": decoder_summary(config.decoder, chunk_results),
         "exposure": exposure,
         "counts": counts,
         "problems": problems,
@@ -235,3 +237,22 @@ def outcome(
         },
         "failure": "; ".join(why) or None,
     }
+
+
+def decoder_summary(configured: str, chunks: list[ChunkRecord]) -> dict[str, Any]:
+    """Which decoders ran (frames per decoder, this run's chunks) and, under `auto`, what each worker process
+    measured before choosing (median probe CPU-s per frame, one entry per distinct measurement)."""
+    frames: dict[str, int] = {}
+    probes: list[dict[str, float]] = []
+    for c in chunks:
+        for d, n in c.decoded.items():
+            frames[d] = frames.get(d, 0) + n
+        if c.decoder_probe and c.decoder_probe not in probes:
+            probes.append(c.decoder_probe)
+    return {"configured": configured, "frames": frames, "probe_cpu_s": probes}
+
+
+def decoder_ran(configured: str, chunks: list[ChunkRecord]) -> str:
+    """The decoder that decoded most of this run's frames (the configured one when none was decoded)."""
+    frames = decoder_summary(configured, chunks)["frames"]
+    return max(frames, key=frames.get) if frames else configured

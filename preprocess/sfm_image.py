@@ -55,7 +55,7 @@ class SfmSource:
     # light -> .npy a chunk task saved while it had the raw frame decoded (frame_task.decode_frame); a light
     # without one is decoded from its raw frame here
     cached: dict[int, str] = field(default_factory=dict)
-    decoder: str = "openexr"  # downscale.DECODERS
+    decoder: str = "auto"  # decoder_choice.CHOICES
     read_timeout_s: float = 120.0
 
 
@@ -93,14 +93,18 @@ def sfm_mean_image(src: SfmSource, trim: bool) -> np.ndarray:
 def _decode_at_factor(src: SfmSource, light: int) -> np.ndarray:
     """A raw frame at raw / factor, x exposure_scale (what a chunk task saves in `cached`)."""
     from lightstage.exr_header import prefetch_file
+    from lightstage.preprocess.decoder_choice import process_chooser
     from lightstage.preprocess.downscale import decode_downscale, decode_raw, downscale
 
     path = src.raw_paths[light]
     prefetch_file(path, src.read_timeout_s)
-    if src.decoder == "bands":
-        rgb = decode_downscale(path, src.raw_size, src.cutoff, src.band_rows, src.factor).rgb
-    else:
-        rgb = downscale(decode_raw(path, src.raw_size), src.cutoff, src.band_rows, src.factor).rgb
+
+    def decode(decoder: str) -> np.ndarray:
+        if decoder == "bands":
+            return decode_downscale(path, src.raw_size, src.cutoff, src.band_rows, src.factor).rgb
+        return downscale(decode_raw(path, src.raw_size), src.cutoff, src.band_rows, src.factor).rgb
+
+    rgb, _ = process_chooser().run(src.decoder, decode)
     rgb *= np.float32(src.exposure_scale)
     return rgb
 
