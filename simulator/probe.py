@@ -64,7 +64,7 @@ class ProbeJob:
     seed: int
     path_template: str = DEFAULT_PROBE_TEMPLATE
     ambient_template: str = DEFAULT_AMBIENT_TEMPLATE
-    compression: str = "zip"
+    compression: str = "piz"  # as the capture's raw frames (render.ViewJob)
     attributes: dict = field(default_factory=dict)
 
 

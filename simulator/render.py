@@ -44,7 +44,9 @@ class ViewJob:
     saturation: float
     seed: int
     path_template: str
-    compression: str = "zip"
+    # raw frames: PIZ (noisy 12-bit half frames: 0.026 CPU-s and 0.48 MB per 768x512 frame against ZIP's 0.043 s
+    # and 1.1 MB); the float32 clean renders keep ZIP (PIZ is 3x slower and larger on them)
+    compression: str = "piz"
     attributes: dict = field(default_factory=dict)
     # (L, 3) relative RGB emission of each light (stage.yaml's lights[i].intensity); None: all 1
     light_intensities: np.ndarray | None = None
@@ -332,7 +334,7 @@ def render_view(job: ViewJob) -> ViewRecord:
             clean = np.zeros((cam.height * cam.width, 3), np.float32)
             clean[hits.index] = radiance
             path = job.root / CLEAN_TEMPLATE.format(group=job.group, camera=job.camera, light=lid)
-            write_exr(path, clean.reshape(cam.height, cam.width, 3), half=False, compression=job.compression)
+            write_exr(path, clean.reshape(cam.height, cam.width, 3), half=False, compression="zip")
         img = bg.copy()
         if backdrop is not None:
             lit_bg = backdrop_frame(backdrop, p, gain, img.shape[:2])

@@ -38,7 +38,7 @@ def test_tiny_capture_contract(tiny_capture: Path) -> None:
     assert all(cap.frame_path(f).is_file() for f in frames)
     h = read_exr_header(cap.frame_path(frames[0]))
     assert (h.width, h.height) == (cap.stage.width, cap.stage.height)
-    assert h.dtype == "half" and "zip" in h.compression.lower()
+    assert h.dtype == "half" and "piz" in h.compression.lower()
     gt = tiny_capture / "ground_truth"
     for name in ("geometry.json", "scene.json", "clean.json", "nuisances.json"):
         assert (gt / name).is_file()

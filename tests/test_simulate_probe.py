@@ -244,7 +244,7 @@ def test_simulated_probe_files_truth_and_determinism(tmp_path: Path, tree_hash) 
     for p in expected:
         h = read_exr_header(p)
         assert (h.width, h.height) == (cap.stage.width, cap.stage.height)
-        assert h.dtype == "half" and "zip" in h.compression.lower()
+        assert h.dtype == "half" and "piz" in h.compression.lower()
 
     gt = json.loads((a / "ground_truth/probe.json").read_text())
     truth = load_truth(a)
