@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from lightstage.training.config import load_config
+from lightstage.training.encoding import positional_encoding
 from lightstage.training.hashgrid import CORNERS, PRIMES, HashGridEncoding
 from lightstage.training.model import RelightModel
 from lightstage.training.occupancy import hull_prior
@@ -120,3 +121,25 @@ def test_half_vector_input_widens_the_head_and_trains():
     o, d, light = _rays(32)
     model(o, d, light)["rgb"].sum().backward()
     assert model.fine.head[0].weight.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("per_ray_light", [True, False])
+def test_per_ray_transfer_equals_per_sample(per_ray_light):
+    """The head's first layer applied to per-ray inputs once per ray and gathered equals the per-sample
+    computation (view per ray; light per ray or per sample)."""
+    torch.manual_seed(0)
+    model = RelightModel(load_config("cpu").model, [0.0, 0.0, 0.0], 1.0)
+    field = model.fine
+    rows = torch.randint(0, 16, (200,))
+    feat = torch.randn(200, field.cfg.hashgrid.geo_features)
+    view = torch.nn.functional.normalize(torch.randn(16, 3), dim=-1)
+    light = torch.nn.functional.normalize(torch.randn(16 if per_ray_light else 200, 3), dim=-1)
+    got = field.transfer(feat, view, light, rows=rows, per_ray_light=per_ray_light)
+    g = field.cfg.hashgrid
+    v, lt = view[rows], light[rows] if per_ray_light else light
+    half = torch.nn.functional.normalize(lt - v, dim=-1)
+    pe = positional_encoding
+    inputs = torch.cat([feat, pe(v, g.dir_freqs), pe(lt, g.light_freqs), pe(half, g.half_freqs)], -1)
+    want = torch.exp(field.head(inputs))  # the head as one MLP on the concatenated inputs
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(field.transfer(feat, v, lt), want, rtol=1e-5, atol=1e-6)

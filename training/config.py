@@ -96,9 +96,15 @@ class ModelConfig:
     # samples whose volume weight exceeds this (0: everywhere); each skipped sample adds < min_weight * h to
     # its pixel. Training always evaluates every kept sample.
     min_weight: float = 0.0
+    # distant: every sample sees the light from the ray's ω (the paper); point: from the light's position
+    # c + R ω (c, R measured from the training lights, kept in the checkpoint), per sample, and with
+    # light_falloff the inverse-square falloff relative to c multiplies h
+    light: str = "distant"
+    light_falloff: bool = True
 
     def __post_init__(self) -> None:
         require_choice(self.field, "field", ("mlp", "hashgrid"))
+        require_choice(self.light, "light", ("distant", "point"))
         require_choice(self.density_activation, "density_activation", ("softplus", "relu"))
         require(self.n_fine >= 1, "n_fine", f"must be >= 1, got {self.n_fine}")
         require(self.n_coarse >= 0, "n_coarse", f"must be >= 0, got {self.n_coarse}")

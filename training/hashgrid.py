@@ -142,16 +142,38 @@ class HashGridField(nn.Module):
             ..., 1:
         ]
 
-    def transfer(self, features: torch.Tensor, view: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
-        """(N, 3) transfer gradient h from geometry features and unit view / light directions (N, 3)."""
+    def transfer(
+        self,
+        features: torch.Tensor,
+        view: torch.Tensor,
+        light: torch.Tensor,
+        rows: torch.Tensor | None = None,
+        per_ray_light: bool = False,
+    ) -> torch.Tensor:
+        """(N, 3) transfer gradient h from geometry features (N, F) and unit view / light directions (N, 3),
+        or, given `rows` (N,) (each sample's ray), the view per ray (R, 3), and the light too when
+        `per_ray_light`. The head's first layer is linear in [features, PE(view), PE(light), PE(half)], so
+        per-ray inputs are encoded and multiplied once per ray and gathered, not once per sample."""
         g = self.cfg.hashgrid
-        parts = [features, positional_encoding(view, g.dir_freqs), positional_encoding(light, g.light_freqs)]
-        if g.half_freqs >= 0:
-            half = torch.nn.functional.normalize(
-                light - view, dim=-1
-            )  # view: the ray direction, into the scene
-            parts.append(positional_encoding(half, g.half_freqs))
-        return exp_head(self.head(torch.cat(parts, -1)), self.cfg.h_max_exponent)
+        first = self.head[0]
+        nf, w = features.shape[1], first.weight
+        by_ray = rows is not None and per_ray_light  # light (and half vector) per ray too
+        per_ray = [positional_encoding(view, g.dir_freqs)]
+        per_sample: list[torch.Tensor] = []
+        (per_ray if by_ray else per_sample).append(positional_encoding(light, g.light_freqs))
+        if g.half_freqs >= 0:  # view: the ray direction, into the scene
+            v = view[rows] if rows is not None and not by_ray else view
+            half = positional_encoding(torch.nn.functional.normalize(light - v, dim=-1), g.half_freqs)
+            (per_ray if by_ray else per_sample).append(half)
+        nr = sum(t.shape[1] for t in per_ray)
+        ray_term = torch.cat(per_ray, -1) @ w[:, nf : nf + nr].t()
+        pre = torch.nn.functional.linear(features, w[:, :nf], first.bias)
+        pre = pre + (ray_term if rows is None else ray_term[rows])
+        if per_sample:
+            pre = pre + torch.cat(per_sample, -1) @ w[:, nf + nr :].t()
+        for module in self.head[1:]:
+            pre = module(pre)
+        return exp_head(pre, self.cfg.h_max_exponent)
 
     def forward(
         self, x: torch.Tensor, view: torch.Tensor, light: torch.Tensor

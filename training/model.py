@@ -13,6 +13,7 @@ from torch import nn
 
 from lightstage.training.config import ModelConfig
 from lightstage.training.hashgrid import HashGridField
+from lightstage.training.light_model import point_light
 from lightstage.training.mlp_field import MLPField
 from lightstage.training.occupancy import OccupancyGrid, density_threshold, hull_prior
 from lightstage.training.render import composite, volume_weights
@@ -57,6 +58,14 @@ class RelightModel(nn.Module):
             if hull is not None and box is not None:
                 prior = hull_prior(torch.as_tensor(hull), self.box[0], self.box[1], cfg.occupancy.resolution)
                 self.occupancy.set_prior(prior)
+        if cfg.light == "point":  # world light centre and distance (set_light_frame); inf: a distant light
+            self.register_buffer("light_centre", torch.zeros(3))
+            self.register_buffer("light_radius", torch.tensor(float("inf")))
+
+    def set_light_frame(self, centre: torch.Tensor | list[float], radius: float) -> None:
+        """Where ω is measured from (world) and how far the lights are (metres), for `light: point`."""
+        self.light_centre.copy_(torch.as_tensor(centre, dtype=torch.float32).reshape(3))
+        self.light_radius.fill_(float(radius))
 
     def normalise(self, points: torch.Tensor) -> torch.Tensor:
         """World points -> unit-cube coordinates."""
@@ -73,6 +82,10 @@ class RelightModel(nn.Module):
         d = torch.nn.functional.normalize(directions.float(), dim=-1)
         light = torch.nn.functional.normalize(light_directions.float(), dim=-1)
         near, far = ray_box(o, d, self.box[0], self.box[1])
+        if self.cfg.light == "point" and bool(torch.isfinite(self.light_radius)):
+            # (light position in normalised coordinates per ray, light distance in normalised units)
+            lp = self.normalise(self.light_centre + self.light_radius * light)
+            light = (light, lp, float(self.light_radius / self.scale))
         out: dict[str, torch.Tensor] = {}
         if self.coarse is not None:
             edges_c = stratified_edges(near, far, self.cfg.n_coarse, randomized)
@@ -86,8 +99,24 @@ class RelightModel(nn.Module):
         out.update(rgb=rgb, sigma=sigma, acc=w.sum(-1))
         return out
 
+    def _lights(
+        self, light: torch.Tensor | tuple, x: torch.Tensor, rows: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(light directions, falloff or None) at samples x (N, 3) of rays `rows` (None: x is (R, S, 3), every
+        sample): the per-ray ω for a distant light, per sample towards a point light (`light: point`)."""
+        if not isinstance(light, tuple):
+            return (light[rows] if rows is not None else light[:, None].expand(x.shape)), None
+        _, lp, radius = light
+        dirs, fall = point_light(x, lp[rows] if rows is not None else lp[:, None], radius)
+        return dirs, (fall if self.cfg.light_falloff else None)
+
     def _march(
-        self, field: nn.Module, o: torch.Tensor, d: torch.Tensor, light: torch.Tensor, edges: torch.Tensor
+        self,
+        field: nn.Module,
+        o: torch.Tensor,
+        d: torch.Tensor,
+        light: torch.Tensor | tuple,
+        edges: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Evaluate `field` at interval midpoints (skipping empty/zero-length ones) and composite."""
         t, delta = midpoints(edges)
@@ -99,46 +128,65 @@ class RelightModel(nn.Module):
             keep = keep.clone()
             keep.view(-1)[0] = True
         R, S = t.shape
-        if self.cfg.min_weight > 0 and hasattr(field, "geometry") and not torch.is_grad_enabled():
-            return self._march_two_stage(field, x, d, light, keep, delta)
+        if hasattr(field, "geometry"):  # hash grid: geometry, then the transfer stage where it matters
+            min_weight = 0.0 if torch.is_grad_enabled() else self.cfg.min_weight
+            return self._march_staged(field, x, d, light, keep, delta, min_weight)
         if bool(keep.all()):
+            ls, fall = self._lights(light, x, None)
             s, h = field(
                 x.reshape(-1, 3),
                 d[:, None].expand(R, S, 3).reshape(-1, 3),
-                light[:, None].expand(R, S, 3).reshape(-1, 3),
+                ls.reshape(-1, 3),
             )
+            if fall is not None:
+                h = h * fall.reshape(-1, 1)
             sigma, hh = s.reshape(R, S), h.reshape(R, S, 3)
         else:
             rows = keep.nonzero(as_tuple=True)[0]
-            s, h = field(x[keep], d[rows], light[rows])
+            xk = x[keep]
+            ls, fall = self._lights(light, xk, rows)
+            s, h = field(xk, d[rows], ls)
+            if fall is not None:
+                h = h * fall[:, None]
             sigma = torch.zeros(R, S, device=x.device, dtype=s.dtype).masked_scatter(keep, s)
             hh = torch.zeros(R, S, 3, device=x.device, dtype=h.dtype).masked_scatter(keep[..., None], h)
         w = volume_weights(sigma, delta)
         return composite(w, hh), sigma, w
 
-    def _march_two_stage(
+    def _march_staged(
         self,
         field: nn.Module,
         x: torch.Tensor,
         d: torch.Tensor,
-        light: torch.Tensor,
+        light: torch.Tensor | tuple,
         keep: torch.Tensor,
         delta: torch.Tensor,
+        min_weight: float = 0.0,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Density and features at the kept samples, then the transfer stage only where the volume weight
-        exceeds cfg.min_weight (on a surface-like object a handful of samples per ray). Rendering only (no
-        gradients): in training a skipped sample would pass no gradient to its density, and a region whose
-        weights fell below the threshold could never grow back (a dark, thin stand is lost that way)."""
+        """Density and features at the kept samples, then the transfer stage at those whose volume weight
+        exceeds `min_weight` (rendering: on a surface-like object a handful of samples per ray), else at
+        all. Training (min_weight 0) never skips by weight: a skipped sample passes no gradient to its own
+        density, and a region whose weights fell below the threshold could never grow back (a dark, thin
+        stand is lost that way). Skipping by transmittance (behind the surface) did not pay on the demo
+        capture: its trained density is volumetric (~3/4 of the kept samples carry weight > 1e-3)."""
         R, S = keep.shape
         s, feat = field.geometry(x[keep])
         sigma = torch.zeros(R, S, device=x.device, dtype=s.dtype).masked_scatter(keep, s)
         w = volume_weights(sigma, delta)
-        active = keep & (w.detach() > self.cfg.min_weight)
+        active = keep & (w.detach() > min_weight) if min_weight > 0 else keep
         if not bool(active.any()):  # one sample, so every parameter takes part (DDP needs it)
             active = active.clone()
             active.view(-1)[int(keep.view(-1).nonzero()[0])] = True
+        if active is not keep:
+            feat = feat[active[keep]]
         rows = active.nonzero(as_tuple=True)[0]
-        h = field.transfer(feat[active[keep]], d[rows], light[rows])
+        if isinstance(light, tuple):  # point light: direction (and falloff) per sample
+            ls, fall = self._lights(light, x[active], rows)
+            h = field.transfer(feat, d, ls, rows=rows)
+            if fall is not None:
+                h = h * fall[:, None]
+        else:
+            h = field.transfer(feat, d, light, rows=rows, per_ray_light=True)
         hh = torch.zeros(R, S, 3, device=x.device, dtype=h.dtype).masked_scatter(active[..., None], h)
         return composite(w, hh), sigma, w
 

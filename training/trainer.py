@@ -33,6 +33,7 @@ from lightstage.training.checkpoint import (
 )
 from lightstage.training.config import OptimConfig, TrainConfig
 from lightstage.training.inputs import BatchSource
+from lightstage.training.light_model import light_frame
 from lightstage.training.losses import total_loss
 from lightstage.training.model import RelightModel
 from lightstage.workdir import ZONE_FOREGROUND
@@ -69,6 +70,21 @@ def compute_stats(source: BatchSource, n_batches: int, percentile: float) -> Tra
     rgb_all, fg_all = np.concatenate(rgb), np.concatenate(fg)
     exposure = auto_exposure(rgb_all[fg_all] if fg_all.any() else rgb_all, percentile)
     return TrainStats(exposure=float(exposure), baseline_rgb=rgb_all.mean(0).astype(float).tolist())
+
+
+def measure_light_frame(source: BatchSource, n_batches: int) -> tuple[list[float], float]:
+    """(centre, distance) of the lights in the first training batches (`light_model.light_frame`); a distant
+    light (inf) when their directions cannot fix a centre (e.g. one light)."""
+    pos, dirs = [], []
+    for _, batch in zip(range(max(1, n_batches)), source.batches(0, 0, 1), strict=False):
+        pos.append(batch["light_positions"].double().numpy())
+        dirs.append(batch["light_directions"].double().numpy())
+    p, idx = np.unique(np.concatenate(pos).round(6), axis=0, return_index=True)
+    try:
+        centre, radius = light_frame(p, np.concatenate(dirs)[idx])
+    except ValueError:
+        return [0.0, 0.0, 0.0], float("inf")
+    return centre.tolist(), radius
 
 
 def distributed() -> tuple[int, int]:
@@ -148,6 +164,8 @@ def fit(
         train_seconds = float(ck.get("train_seconds", 0.0))
     if stats is None:
         stats = compute_stats(source, cfg.eval.stats_batches, cfg.eval.exposure_percentile)
+    if cfg.model.light == "point" and not bool(torch.isfinite(model.light_radius)):
+        model.set_light_frame(*measure_light_frame(source, cfg.eval.stats_batches))
 
     net: torch.nn.Module = model
     if world > 1:
