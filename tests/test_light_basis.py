@@ -146,7 +146,7 @@ def test_crop_keeps_every_non_zero_pixel_and_a_basis_light_reproduces_its_image(
 
 
 # ---- the shared-density OLAT renders --------------------------------------------------------------------
-def _random_model(field: str, min_weight: float, n_coarse: int = 0):
+def _random_model(field: str, min_weight: float, n_coarse: int = 0, light: str = "distant"):
     from lightstage.training.config import load_config
     from lightstage.training.inference import TrainedModel
     from lightstage.training.model import RelightModel
@@ -157,6 +157,7 @@ def _random_model(field: str, min_weight: float, n_coarse: int = 0):
             "n_coarse": n_coarse,
             "n_fine": 12,
             "min_weight": min_weight,
+            "light": light,
             "density_bias": 2.0,
             "h_bias_init": 0.0,
             "mlp": {"depth": 2, "width": 16, "skip": 1, "head_width": 8, "pos_freqs": 2},
@@ -168,16 +169,20 @@ def _random_model(field: str, min_weight: float, n_coarse: int = 0):
     net = RelightModel(cfg.model, [0.0, 0.0, 0.0], 0.5)
     for p in net.parameters():
         p.data.normal_(0.0, 0.5)
+    if light == "point":  # lights 1 m from a point off the scene centre: directions and falloff vary
+        net.set_light_frame([0.05, 0.0, -0.02], 1.0)
     return TrainedModel(net, cfg)
 
 
 @pytest.mark.parametrize(
-    "field, min_weight, n_coarse", [("hashgrid", 1e-3, 0), ("hashgrid", 0.0, 8), ("mlp", 0.0, 8)]
-)
-def test_olat_basis_equals_one_render_per_light(field, min_weight, n_coarse):
+    "field, min_weight, n_coarse, light",
+    [("hashgrid", 1e-3, 0, "distant"), ("hashgrid", 0.0, 8, "distant"), ("mlp", 0.0, 8, "distant"),
+     ("hashgrid", 1e-3, 0, "point")],
+)  # fmt: skip
+def test_olat_basis_equals_one_render_per_light(field, min_weight, n_coarse, light):
     from lightstage.training.olat_basis import render_olat_basis
 
-    model = _random_model(field, min_weight, n_coarse)
+    model = _random_model(field, min_weight, n_coarse, light)
     R, t = look_at(np.array([1.2, 0.4, 0.5]), np.zeros(3))
     K = np.array([[20.0, 0, 8], [0, 20.0, 6], [0, 0, 1]])
     camera = PinholeCamera(K, R, t, 16, 12)

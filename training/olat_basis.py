@@ -17,6 +17,7 @@ import torch
 from lightstage.cameras import camera_rays
 from lightstage.training.encoding import encoded_dim, positional_encoding
 from lightstage.training.heads import exp_head
+from lightstage.training.light_model import point_light
 from lightstage.training.render import volume_weights
 from lightstage.training.sampling import merge_edges, midpoints, ray_box, resample_edges, stratified_edges
 
@@ -72,18 +73,35 @@ def _shared_chunk(net, origins: torch.Tensor, directions: torch.Tensor, lights: 
         edges = merge_edges(edges_c, resample_edges(edges_c, w_c, cfg.n_fine, False, cfg.resample_padding))
     else:
         edges = stratified_edges(near, far, cfg.n_fine, False)
-    w, keep, feat = _weights(net, net.fine, o, d, edges)
+    w, keep, feat, x = _weights(net, net.fine, o, d, edges)
     active = keep & (w > cfg.min_weight) if cfg.min_weight > 0 else keep
     if not bool(active.any()):  # as RelightModel: one sample takes part
         active = active.clone()
         active.view(-1)[int(keep.view(-1).nonzero()[0])] = True
     rows = active.nonzero(as_tuple=True)[0]
-    transfer = FactoredTransfer.of(net.fine, feat[active[keep]], d[rows])
+    if getattr(net.cfg, "light", "distant") == "point" and bool(torch.isfinite(net.light_radius)):
+        transfer = _point_transfer(net, feat[active[keep]], d, rows, x[active])
+    else:
+        transfer = FactoredTransfer.of(net.fine, feat[active[keep]], d[rows])
     weight = w[active][:, None]
     out = torch.zeros(len(lights), len(o), 3, device=o.device)
     for i, light in enumerate(lights):
         out[i].index_add_(0, rows, weight * transfer(light))
     return out
+
+
+def _point_transfer(net, feat: torch.Tensor, d: torch.Tensor, rows: torch.Tensor, x: torch.Tensor):
+    """`light (3,) -> h (N, 3)` for a model with point lights (`model.light: point`): the light at
+    c + R ω, its direction and falloff per sample, as RelightModel._lights."""
+    radius = float(net.light_radius / net.scale)
+
+    def transfer(light: torch.Tensor) -> torch.Tensor:
+        lp = net.normalise(net.light_centre + net.light_radius * light)
+        dirs, fall = point_light(x, lp, radius)
+        h = net.fine.transfer(feat, d, dirs, rows=rows)
+        return h * fall[:, None] if net.cfg.light_falloff else h
+
+    return transfer
 
 
 class FactoredTransfer:
@@ -157,4 +175,4 @@ def _weights(net, field, o: torch.Tensor, d: torch.Tensor, edges: torch.Tensor):
     else:
         s, feat = field.density(x[keep]), None
     sigma = torch.zeros(keep.shape, device=x.device, dtype=s.dtype).masked_scatter(keep, s)
-    return volume_weights(sigma, delta), keep, feat
+    return volume_weights(sigma, delta), keep, feat, x
