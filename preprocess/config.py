@@ -40,6 +40,7 @@ class PreprocessConfig:
     # ---- segmentation (on the processed resolution)
     segmentation: str = "adaptive"  # adaptive | lit_fraction (the old fixed-fraction rule)
     # adaptive: a pixel's lit levels are the brightnesses these fractions of its frames exceed ...
+    # (and `mean`: the mean luminance over the stack, where a dark part lit well in one or two frames stands out)
     brightness_quantiles: str = "0.1,0.25"
     min_quantile_frames: float = 2.0  # ... and at least this many frames (a flare is in one, rarely two)
     border_width: float = (
@@ -63,6 +64,13 @@ class PreprocessConfig:
     centre_weight: float = 0.5  # ... scored by area, discounted by distance from the image centre
     fill_holes: bool = True
     band_width: int = 6  # zone map: pixels on each side of the silhouette that form the band
+    # ---- cross-group consistency (consistency.py): once every view of a camera has its mask, masked pixels
+    # whose mean image agrees with most of the camera's other groups (within background_sigmas of the noise
+    # measured on that camera's background) are stage structure fixed to the camera, not the turning object
+    consistency: bool = True
+    consistency_max_removed: float = (
+        0.5  # ... unless that would remove more than this fraction of a view's mask
+    )
     # ---- sanity flags of a view's mask (view.json "flags", the report, the console, overlay.png)
     flag_border_fraction: float = 0.5  # the mask covers more than this fraction of the frame's perimeter
     flag_min_fraction: float = 0.002  # foreground fraction below this ...
@@ -103,7 +111,9 @@ class PreprocessConfig:
         except ValueError:
             qs = ()
         if not qs or not all(0 < q < 1 for q in qs):
-            raise bad("brightness_quantiles", "expected comma-separated fractions in (0, 1)")
+            raise bad(
+                "brightness_quantiles", "expected comma-separated fractions in (0, 1), and optionally mean"
+            )
         if self.segmentation not in ("adaptive", "lit_fraction"):
             raise bad("segmentation", "expected adaptive or lit_fraction")
         if self.compression not in COMPRESSIONS:
@@ -155,6 +165,7 @@ class PreprocessConfig:
             "flag_border_fraction",
             "flag_min_fraction",
             "flag_max_fraction",
+            "consistency_max_removed",
         ):
             if not 0 <= getattr(self, key) <= 1:
                 raise bad(key, "expected a fraction in [0, 1]")
@@ -162,8 +173,12 @@ class PreprocessConfig:
             raise bad("exposure_percentile", "expected a percentile in (0, 100]")
 
     def quantiles(self) -> tuple[float, ...]:
-        """brightness_quantiles as numbers."""
-        return tuple(float(x) for x in self.brightness_quantiles.split(",") if x.strip())
+        """brightness_quantiles as numbers (without `mean`)."""
+        return tuple(float(x) for x in self.brightness_quantiles.split(",") if x.strip() not in ("", "mean"))
+
+    def mean_layer(self) -> bool:
+        """brightness_quantiles lists `mean`: the mean luminance over the stack is a lit level too."""
+        return "mean" in (x.strip() for x in self.brightness_quantiles.split(","))
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -176,7 +191,7 @@ class PreprocessConfig:
     def view_key(self) -> str:
         """Hash of everything the per-view outputs depend on."""
         keep = {k: v for k, v in self.to_dict().items() if k not in _NOT_IN_VIEW_KEY}
-        return _hash({**keep, "format": STATS_FORMAT})
+        return _hash({**keep, "format": STATS_FORMAT, "segment": SEGMENT_FORMAT})
 
 
 # Settings that change how, not what, a view is computed (the decoders give identical frames).
@@ -194,6 +209,10 @@ _NOT_IN_VIEW_KEY = (
 
 # Bumped when the statistics or segmentation change meaning, so stale view outputs are recomputed.
 STATS_FORMAT = 3  # 2: frame thumbnails cover whole blocks only; 3: brightness ladder, frames / LED intensity, flare vs the upper quartile
+
+# Bumped when a view's segmentation changes its result: 2: wide background blurs on a downsampled copy; 3: colour
+# grows the mask until it adds nothing, the inclusive mask (stats.npz mask_inclusive) for the camera step.
+SEGMENT_FORMAT = 3
 
 
 def _hash(obj: Any) -> str:

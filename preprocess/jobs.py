@@ -99,6 +99,8 @@ class ViewRecord:
     # why the mask looks wrong (segment.mask_flags; group_flags added once every view is done); empty: fine
     flags: list[str] = field(default_factory=list)
     segmentation: dict[str, Any] = field(default_factory=dict)  # measured levels (segment.segment_view)
+    # the camera's cross-group step (camera_task.py): pixels removed, noise fitted, IoU of the view's own mask
+    consistency: dict[str, Any] = field(default_factory=dict)
 
     @property
     def view(self) -> ViewId:

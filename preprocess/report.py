@@ -79,6 +79,7 @@ def write_previews(
             "view_key": rec.key,
             "lights": len(rec.lights),
             "flags": rec.flags,
+            "foreground_fraction": rec.foreground_fraction,  # the mask (the camera step may change it)
         }
         outputs = (
             work.wellit(view),

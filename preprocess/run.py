@@ -22,6 +22,7 @@ from lightstage.capture.layout import Capture, open_capture
 from lightstage.errors import LightstageError, StageIncomplete
 from lightstage.executor import Executor, LoopExecutor, TaskFailure
 from lightstage.ids import FrameId, ViewId
+from lightstage.preprocess.camera_task import CameraJob, camera_done, camera_key, finalise_camera
 from lightstage.preprocess.config import PreprocessConfig
 from lightstage.preprocess.frame_task import process_chunk
 from lightstage.preprocess.jobs import (
@@ -118,6 +119,9 @@ def run_preprocess(
     executor = executor or LoopExecutor()
     _run_views(executor, todo, chunk_jobs, records, chunk_results, errors, config, progress)
     t_views = time.perf_counter() - t_frames
+    t_cams = time.perf_counter()
+    _run_cameras(work, executor, view_jobs, records, errors, config, progress)
+    t_cameras = time.perf_counter() - t_cams
     add_group_flags(work, records, config)
     t_prev = time.perf_counter()
     exposure = write_previews(
@@ -135,6 +139,7 @@ def run_preprocess(
     report["timings"] = {
         "total_s": round(time.perf_counter() - t0, 3),
         "frames_and_views_s": round(t_views, 3),
+        "cameras_s": round(t_cameras, 3),
         "previews_s": round(t_previews, 3),
         "probe_s": probe["seconds"] if probe is not None else None,
         "per_processed_frame_s": round(t_views / max(report["counts"]["processed"], 1), 4)
@@ -219,6 +224,47 @@ def _run_views(
             continue
         records[view] = rec
         chunk_results.extend(ChunkRecord(**c) for c in rec.chunks)
+
+
+def _run_cameras(
+    work: WorkDir,
+    executor: Executor,
+    view_jobs: list[ViewJob],
+    records: dict[ViewId, ViewRecord],
+    errors: list[str],
+    config: PreprocessConfig,
+    progress: bool,
+) -> None:
+    """The camera step (camera_task.py) for every camera whose finished views changed since it last ran: the
+    views' final masks. A failed camera is an error, and its views count as failed (the stage is incomplete; a
+    rerun redoes the step from the views' own masks)."""
+    by_camera: dict[str, list[ViewJob]] = {}
+    for job in view_jobs:
+        if ViewId(job.group, job.camera) in records:
+            by_camera.setdefault(job.camera, []).append(job)
+    todo = []
+    for camera, jobs in by_camera.items():
+        groups = [j.group for j in jobs]
+        key = camera_key(camera, groups, config)
+        cam = CameraJob(str(work.root), camera, tuple(groups), config, tuple(j.gt_mask for j in jobs), key)
+        if not camera_done(work, cam):
+            todo.append(cam)
+    done = executor.map(
+        finalise_camera,
+        todo,
+        desc="cameras",
+        unit="camera",
+        progress=progress and bool(todo),
+        errors="return",
+    )
+    for cam, res in zip(todo, done, strict=True):
+        if isinstance(res, TaskFailure):
+            errors.append(f"camera {cam.camera} (views {', '.join(cam.groups)}): {res.error}")
+            for group in cam.groups:
+                records.pop(ViewId(group, cam.camera), None)
+            continue
+        for group, rec in res.items():
+            records[ViewId(group, cam.camera)] = rec
 
 
 def _view_after_chunks(job: ViewJob, chunk_records: list[ChunkRecord]) -> ViewRecord:

@@ -18,6 +18,9 @@ The default ("adaptive") sets every threshold from the view's own statistics (do
    pixel is foreground when its mean (unsaturated) luminance is at least halfway between the object level
    just inside the rim (a ring 1-2 pixels in, not the brighter interior: the rim is darkened by lights near the
    view axis) and the local background level outside.
+6. Colour near the silhouette (`colour_refine`), repeated until it adds nothing.
+`segment_masks` also gives an inclusive mask that takes the mean luminance over the stack as one more lit level
+(dark parts lit well in a frame or two); the camera's cross-group step (consistency.py) starts from it.
 The old rule ("lit_fraction": lit above a per-frame dark level in a fixed fraction of the frames) is kept as
 an option. `mask_flags` says when a mask looks wrong (touching most of the border, implausible size).
 """
@@ -29,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from lightstage.preprocess.config import PreprocessConfig
-from lightstage.preprocess.stats import ViewStats
+from lightstage.preprocess.stats import LADDER_STOPS, ViewStats
 from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND
 
 
@@ -67,15 +70,17 @@ def keep_components(mask: np.ndarray, config: PreprocessConfig) -> np.ndarray:
     return np.isin(labels, keep)
 
 
+# rounds of colour growth (`colour_band` pixels each) at most; on the simulator's captures it stops after <= 6
+COLOUR_ROUNDS = 16
+
+
 def _normalised_blur(
     values: np.ndarray, weights: np.ndarray, sigma: float, den: np.ndarray | None = None
 ) -> np.ndarray:
     """Gaussian-weighted local mean of `values` under `weights`; `den` (= _weight_blur(weights, sigma)) may be
-    passed when several values share the weights: at the background's sigma (~250 px) each blur costs ~1 CPU-s."""
-    import cv2
-
+    passed when several values share the weights."""
     w = weights.astype(np.float32)
-    num = cv2.GaussianBlur(values.astype(np.float32) * w, (0, 0), sigma)
+    num = gaussian_blur(values.astype(np.float32) * w, sigma)
     if den is None:
         den = _weight_blur(w, sigma)
     return num / den
@@ -83,9 +88,33 @@ def _normalised_blur(
 
 def _weight_blur(weights: np.ndarray, sigma: float) -> np.ndarray:
     """The denominator of _normalised_blur: the blurred weights, floored at 1e-6."""
+    return np.maximum(gaussian_blur(weights.astype(np.float32), sigma), 1e-6)
+
+
+# a wide blur runs on an area-downsampled copy with at least this many pixels per sigma, at least MIN_BLUR_SIDE
+# pixels on its short side, and at most 8x smaller: a Gaussian of 3 pixels or more is smooth on that grid
+BLUR_PIXELS_PER_SIGMA = 3.0
+MIN_BLUR_SIDE = 64
+
+
+def blur_factor(sigma: float, shape: tuple[int, ...] = (1 << 30, 1 << 30)) -> int:
+    """The downsampling factor `gaussian_blur` uses for `sigma` on an image of `shape` (1: full resolution)."""
+    return int(max(1, min(8, sigma // BLUR_PIXELS_PER_SIGMA, min(shape[:2]) // MIN_BLUR_SIDE)))
+
+
+def gaussian_blur(img: np.ndarray, sigma: float) -> np.ndarray:
+    """cv2.GaussianBlur of a float32 image; a wide one (the background map's ~250 px at 2048x1366) on a copy
+    area-downsampled by `blur_factor` and resized back (bilinear): the result is as smooth, and the cost drops
+    from ~1 CPU-s per blur to a few ms."""
     import cv2
 
-    return np.maximum(cv2.GaussianBlur(weights.astype(np.float32), (0, 0), sigma), 1e-6)
+    f = blur_factor(sigma, img.shape)
+    if f == 1:
+        return cv2.GaussianBlur(img, (0, 0), sigma)
+    h, w = img.shape[:2]
+    small = cv2.resize(img, (-(-w // f), -(-h // f)), interpolation=cv2.INTER_AREA)
+    small = cv2.GaussianBlur(small, (0, 0), sigma / f)
+    return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
 
 
 def refine_boundary(
@@ -129,19 +158,33 @@ def _robust(values: np.ndarray) -> tuple[float, float]:
     return med, 1.4826 * float(np.median(np.abs(values - med)))
 
 
-def segment(stats: ViewStats, config: PreprocessConfig) -> np.ndarray:
+def segment(stats: ViewStats, config: PreprocessConfig, cutoff: float = 1.0) -> np.ndarray:
     """(h, w) bool foreground mask from a view's statistics."""
-    return segment_view(stats, config)[0]
+    return segment_view(stats, config, cutoff)[0]
 
 
-def segment_view(stats: ViewStats, config: PreprocessConfig) -> tuple[np.ndarray, dict[str, Any]]:
+def segment_view(
+    stats: ViewStats, config: PreprocessConfig, cutoff: float = 1.0
+) -> tuple[np.ndarray, dict[str, Any]]:
     """(mask, info): the (h, w) bool foreground mask and what the thresholds were measured as (stops below the
     cutoff: background level and spread in the border ring, object level, threshold at the border)."""
+    mask, _, info = segment_masks(stats, config, cutoff)
+    return mask, info
+
+
+def segment_masks(
+    stats: ViewStats, config: PreprocessConfig, cutoff: float = 1.0
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """(mask, inclusive, info): the view's own mask, and a superset that also takes the mean luminance over the
+    stack as a lit level (dark parts lit well in a frame or two; it lets more stage structure in too, which the
+    camera's cross-group step, consistency.py, removes: it starts from this one)."""
     if stats.count == 0:
-        return np.zeros(stats.peak.shape, bool), {}
+        empty = np.zeros(stats.peak.shape, bool)
+        return empty, empty, {}
     if config.segmentation == "lit_fraction" or len(stats.ladder) == 0:
-        return _segment_lit_fraction(stats, config), {"method": "lit_fraction"}
-    return _segment_adaptive(stats, config)
+        mask = _segment_lit_fraction(stats, config)
+        return mask, mask, {"method": "lit_fraction"}
+    return _segment_adaptive(stats, config, cutoff)
 
 
 def _cleanup(coarse: np.ndarray, stats: ViewStats, config: PreprocessConfig, rim: int) -> np.ndarray:
@@ -164,11 +207,14 @@ def _cleanup(coarse: np.ndarray, stats: ViewStats, config: PreprocessConfig, rim
     return mask
 
 
-def colour_refine(mask: np.ndarray, stats: ViewStats, config: PreprocessConfig) -> np.ndarray:
+def colour_refine(
+    mask: np.ndarray, stats: ViewStats, config: PreprocessConfig, rounds: int = 1
+) -> np.ndarray:
     """Add the pixels within `colour_band` of the silhouette whose colour (chromaticity of the mean image over the
     whole stack, which does not depend on brightness) is clearly not the local background's and nearer the
-    local object's, and that are no brighter than the local background (a partly covered pixel takes the bright
-    object's colour): dark-albedo parts and shadowed rims are as dark as a lit backdrop but keep their colour.
+    local object's; next to the silhouette only those no brighter than the local background (a partly covered
+    pixel takes the bright object's colour), farther out any: dark-albedo parts, shadowed rims and dark notches
+    are as dark as a lit backdrop but keep their colour. Repeated up to `rounds` times while it adds pixels.
     Inactive where the object and the backdrop have the same colour (their chromaticities differ by less than
     `background_sigmas` background spreads), and for pixels below the noise floor of the background."""
     import cv2
@@ -178,43 +224,64 @@ def colour_refine(mask: np.ndarray, stats: ViewStats, config: PreprocessConfig) 
     rgb = np.maximum(stats.mean.astype(np.float32), 0)
     lum = np.maximum(rgb @ np.array([0.2126, 0.7152, 0.0722], np.float32), 1e-12)
     chroma = np.log(np.maximum(rgb, 1e-12) / lum[..., None])[..., [0, 2]]  # log r/Y, log b/Y
-    m8 = mask.astype(np.uint8)
     sigma = 2.0 * max(config.colour_band, 1)
-    inner = cv2.erode(m8, _disk(2)).astype(bool)
-    away = ~cv2.dilate(m8, _disk(config.colour_band + 2)).astype(bool)
-    near_out = cv2.dilate(m8, _disk(config.colour_band)).astype(bool) & ~mask
-    if not inner.any() or not away.any() or not near_out.any():
+    m8 = mask.astype(np.uint8)
+    # measured once, on the mask as it came: the background's noise floor and chromaticity spread
+    away0 = ~cv2.dilate(m8, _disk(config.colour_band + 2)).astype(bool)
+    if not away0.any():
         return mask
     # reliable colour: brighter than the background's noise (its lowest decile of mean luminance, twice)
-    reliable = lum > 2.0 * float(np.percentile(lum[away], 10))
-    w_in, w_out = (inner & reliable), (away & reliable)
-    if not w_in.any() or not w_out.any():
+    reliable = lum > 2.0 * float(np.percentile(lum[away0], 10))
+    w0 = away0 & reliable
+    if not w0.any():
         return mask
-    den_in, den_out = _weight_blur(w_in, sigma), _weight_blur(w_out, 4 * sigma)
-    c_obj = np.stack([_normalised_blur(chroma[..., k], w_in, sigma, den_in) for k in range(2)], axis=-1)
-    c_bg = np.stack([_normalised_blur(chroma[..., k], w_out, 4 * sigma, den_out) for k in range(2)], axis=-1)
-    dev = np.linalg.norm(chroma - c_bg, axis=-1)
-    spread = 1.4826 * float(np.median(dev[w_out]))
+    c_bg0 = np.stack([_normalised_blur(chroma[..., k], w0, 4 * sigma) for k in range(2)], axis=-1)
+    spread = 1.4826 * float(np.median(np.linalg.norm(chroma[w0] - c_bg0[w0], axis=-1)))
     if not spread > 0:
         return mask
-    separation = np.linalg.norm(c_obj - c_bg, axis=-1)
-    d_obj = np.linalg.norm(chroma - c_obj, axis=-1)
-    add = near_out & reliable & (separation > config.background_sigmas * spread)
-    add &= (dev > config.background_sigmas * spread) & (d_obj < dev)
-    # not a pixel that is partly covered by the bright object (its colour would be the object's): as dark as the
-    # local background, like a dark-albedo part of the object
-    lum_bg = _normalised_blur(lum, w_out, 4 * sigma, den_out)
-    add &= lum < 1.5 * lum_bg
-    if not add.any():
-        return mask
-    out = mask | add
-    # keep only additions connected to the mask
-    n, labels = cv2.connectedComponents(out.astype(np.uint8), connectivity=8)
-    keep = np.unique(labels[mask])
-    return np.isin(labels, keep[keep > 0])
+    limit = config.background_sigmas * spread
+    # a pixel partly covered by the bright object lies within 1 pixel of the silhouette decided by brightness
+    beside = cv2.dilate(m8, _disk(1)).astype(bool) & ~mask
+    out = mask.copy()
+    for _ in range(max(1, rounds)):
+        o8 = out.astype(np.uint8)
+        inner = cv2.erode(o8, _disk(2)).astype(bool)
+        away = ~cv2.dilate(o8, _disk(config.colour_band + 2)).astype(bool)
+        near = cv2.dilate(o8, _disk(config.colour_band)).astype(bool) & ~out & reliable
+        w_in, w_out = inner & reliable, away & reliable
+        if not near.any() or not w_in.any() or not w_out.any():
+            break
+        den_in, den_out = _weight_blur(w_in, sigma), _weight_blur(w_out, 4 * sigma)
+        idx = np.nonzero(near)
+        c = chroma[idx]
+        c_obj = np.stack(
+            [_normalised_blur(chroma[..., k], w_in, sigma, den_in)[idx] for k in range(2)], axis=-1
+        )
+        c_bg = np.stack(
+            [_normalised_blur(chroma[..., k], w_out, 4 * sigma, den_out)[idx] for k in range(2)], axis=-1
+        )
+        dev = np.linalg.norm(c - c_bg, axis=-1)
+        ok = (np.linalg.norm(c_obj - c_bg, axis=-1) > limit) & (dev > limit)
+        ok &= np.linalg.norm(c - c_obj, axis=-1) < dev
+        lum_bg = _normalised_blur(lum, w_out, 4 * sigma, den_out)[idx]
+        ok &= (lum[idx] < 1.5 * lum_bg) | ~beside[idx]
+        if not ok.any():
+            break
+        grown = out.copy()
+        grown[idx[0][ok], idx[1][ok]] = True
+        # keep only additions connected to the mask
+        _, labels = cv2.connectedComponents(grown.astype(np.uint8), connectivity=8)
+        keep = np.unique(labels[out])
+        grown = np.isin(labels, keep[keep > 0])
+        if np.array_equal(grown, out):
+            break
+        out = grown
+    return out
 
 
-def _segment_adaptive(stats: ViewStats, config: PreprocessConfig) -> tuple[np.ndarray, dict[str, Any]]:
+def _segment_adaptive(
+    stats: ViewStats, config: PreprocessConfig, cutoff: float
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     import cv2
 
     shape = stats.peak.shape
@@ -227,41 +294,59 @@ def _segment_adaptive(stats: ViewStats, config: PreprocessConfig) -> tuple[np.nd
     info: dict[str, Any] = {"method": "adaptive", "quantiles": {}}
     # a quantile reaches at least `min_quantile_frames` frames: flares and visible bulbs are in a few frames only
     qs = sorted({max(q, config.min_quantile_frames / max(stats.count, 1)) for q in config.quantiles()})
-    for q in qs:
-        level = stats.brightness_quantile(min(q, 0.9))
+    # the quantile layers, and the mean unsaturated luminance over the whole stack: a dark or shadowed part of the
+    # object lit well in one or two frames only stands out in the mean, not in the quantiles
+    for q in [*qs, "mean"]:
+        if q == "mean":
+            # floored where the ladder ends: darks quantised to 0 must not make a background of -inf stops
+            lowest = 2.0 ** -(LADDER_STOPS[-1] + 1)
+            level = np.log2(np.maximum(stats.unsaturated_mean_luminance() / cutoff, lowest)).astype(
+                np.float32
+            )
+        else:
+            level = stats.brightness_quantile(min(q, 0.9))
         b0, s0 = _robust(level[ring])
         s0 = max(s0, floor)
         strong = ~ring & (level > b0 + max(config.background_sigmas * s0, 2.0 * config.min_contrast_stops))
         if not strong.any():
             continue
         obj = float(np.median(level[strong]))
-        layers.append([level, np.full(shape, b0, np.float32), np.full(shape, s0, np.float32), obj])
+        # the mean layer takes part in the view's own mask when configured, else only in the inclusive one
+        own = q != "mean" or config.mean_layer()
+        layers.append([level, np.full(shape, b0, np.float32), np.full(shape, s0, np.float32), obj, own])
         info["quantiles"][str(q)] = {
             "background_stops": round(-b0, 3),
             "background_spread_stops": round(s0, 3),
             "object_stops": round(-obj, 3),
         }
     if not layers:
-        return np.zeros(shape, bool), info
-    mask = np.zeros(shape, bool)
+        return np.zeros(shape, bool), np.zeros(shape, bool), info
+    mask = inclusive = np.zeros(shape, bool)
     for it in range(3):
         score = np.full(shape, -np.inf, np.float32)
-        for level, back, spread, obj in layers:
+        score_all = np.full(shape, -np.inf, np.float32)
+        for level, back, spread, obj, own in layers:
             contrast = np.maximum(
                 np.maximum(config.background_sigmas * spread, config.contrast_fraction * (obj - back)),
                 config.min_contrast_stops,
             )
-            np.maximum(score, (level - back) / contrast, out=score)
-        coarse = (score > 1.0) & mostly_unsat
-        mask = _cleanup(coarse, stats, config, rim=2)
+            np.maximum(score_all, (level - back) / contrast, out=score_all)
+            if own:
+                np.maximum(score, (level - back) / contrast, out=score)
+        mask = _cleanup((score > 1.0) & mostly_unsat, stats, config, rim=2)
         if it == 2 or not mask.any():
-            mask = colour_refine(mask, stats, config)
-            if config.fill_holes:
-                mask = fill_holes(mask)
+            mask = _colour_grow(mask, stats, config)
+            inclusive = mask
+            if not np.array_equal(score_all, score):
+                inclusive = _colour_grow(
+                    _cleanup((score_all > 1.0) & mostly_unsat, stats, config, rim=2), stats, config
+                )
+                inclusive |= mask
             break
         # the background where the object is not: outside the dilated mask (the border ring counts double)
         away = ~cv2.dilate(mask.astype(np.uint8), _disk(max(3, config.band_width))).astype(bool)
         if np.count_nonzero(away) < 0.05 * mask.size:
+            inclusive = mask
             break
         weight = away.astype(np.float32) * (1.0 + ring)
         den = _weight_blur(weight, sigma)  # shared by every layer's two blurs
@@ -271,7 +356,13 @@ def _segment_adaptive(stats: ViewStats, config: PreprocessConfig) -> tuple[np.nd
             layer[2] = np.maximum(
                 1.2533 * _normalised_blur(np.abs(level - layer[1]), weight, sigma, den), floor
             )
-    return mask, info
+    return mask, inclusive, info
+
+
+def _colour_grow(mask: np.ndarray, stats: ViewStats, config: PreprocessConfig) -> np.ndarray:
+    """colour_refine until it adds nothing (at most COLOUR_ROUNDS rounds), then holes filled."""
+    mask = colour_refine(mask, stats, config, COLOUR_ROUNDS)
+    return fill_holes(mask) if config.fill_holes else mask
 
 
 def _segment_lit_fraction(stats: ViewStats, config: PreprocessConfig) -> np.ndarray:

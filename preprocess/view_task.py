@@ -15,6 +15,7 @@ import numpy as np
 from lightstage.atomic import write_json_atomic
 from lightstage.errors import LightstageError
 from lightstage.ids import FrameId, ViewId
+from lightstage.preprocess.camera_task import camera_marker
 from lightstage.preprocess.jobs import (
     PARTIALS,
     VIEW_RECORD,
@@ -35,7 +36,7 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
     last. `chunk_records` (from this run's chunk tasks) only feed the record's timings."""
     from lightstage.frames import write_exr, write_image
     from lightstage.preprocess.flare import flare_scores
-    from lightstage.preprocess.segment import iou, mask_flags, segment_view, zone_map
+    from lightstage.preprocess.segment import iou, mask_flags, segment_masks, zone_map
     from lightstage.preprocess.sfm_image import upsample_mask
     from lightstage.preprocess.stats import ViewStats, empty_stats, merge_tree
     from lightstage.records.processed import to_half
@@ -73,7 +74,7 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
         raise LightstageError(
             f"{view}: statistics are {stats.mean.shape[1]}x{stats.mean.shape[0]}, expected {w}x{h}"
         )
-    mask, seg_info = segment_view(stats, cfg)
+    mask, inclusive, seg_info = segment_masks(stats, cfg, job.cutoff)
     zones = zone_map(mask, cfg.band_width)
     lum_thumbs = np.concatenate(thumbs) if thumbs else np.zeros((0, 1, 1), np.float32)
     sat_thumbs = np.concatenate(sthumbs) if sthumbs else np.zeros((0, 1, 1), np.float32)
@@ -89,11 +90,14 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
     sfm_level = _foreground_level(sfm, sfm_mask, cfg.exposure_percentile)
 
     vdir = work.view_dir(view)
+    # the camera's cross-group step must run again on this view's new outputs (camera_task.py)
+    camera_marker(work, job.camera).unlink(missing_ok=True)
     remove_stale_temps(vdir, ["stats", "mean", "sfm", "mask", "zones", "view"])
     stats.save(
         vdir / "stats.npz",
         extras={
             "mask": mask,
+            "mask_inclusive": inclusive,
             "flare_scores": np.asarray(scores, np.float32),
             "lit_thresholds": np.concatenate(taus) if taus else np.zeros(0),
         },

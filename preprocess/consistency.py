@@ -1,0 +1,171 @@
+"""Cross-group consistency of one camera's masks: stage structure that joined a view's mask is removed.
+
+On a light stage the cameras, the lights and the structure behind the object (cage, cloth) stay where they are
+while the turntable rotates the object between groups. So a background pixel of a camera sees the same lights in
+every group and its mean over the OLAT stack is the same up to sensor noise, while an object pixel changes as the
+object turns. After every view of a camera has its masks, a pixel of a view's inclusive mask whose mean agrees with
+the same pixel of at least half of the camera's other groups (within `background_sigmas` of the noise measured on
+the camera's own background, where no group sees the object) is fixed to the camera, not the object, and leaves the
+mask, with the connected pixels that agree with at least two (the turning object covers a background pixel next to
+it in some of the other groups).
+
+Limits (docs/preprocess.md): a rotationally symmetric, evenly coloured object (or part of one) centred on the
+turntable axis also looks fixed; when the removal would take more than `consistency_max_removed` of a view's mask
+nothing is removed from it. Needs at least 3 groups with the same frames; otherwise the masks stay as they are.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from lightstage.preprocess.config import PreprocessConfig
+
+MIN_GROUPS = 3  # a pixel is judged against a majority of the other groups: at least two of them
+
+
+def noise_fit(level: np.ndarray, diff: np.ndarray, bins: int = 16) -> tuple[float, float] | None:
+    """(a, b) of the noise variance of one group's mean image, var = a + b * level (read + shot noise of a mean),
+    from pairs of groups at background pixels: `level` their mean, `diff` their difference (variance 2 var).
+    Robust per brightness bin (MAD), fitted with relative weights; None when fewer than 2 bins have a spread."""
+    if level.size < 20 * bins:
+        return None
+    edges = np.quantile(level, np.linspace(0, 1, bins + 1))
+    idx = np.clip(np.searchsorted(edges, level, side="right") - 1, 0, bins - 1)
+    xs, ys = [], []
+    for i in range(bins):
+        d = diff[idx == i]
+        if d.size < 20:
+            continue
+        s = 1.4826 * float(np.median(np.abs(d - np.median(d))))
+        if s > 0:
+            xs.append(float(np.median(level[idx == i])))
+            ys.append(0.5 * s * s)
+    if len(xs) < 2:
+        return None
+    x, y = np.asarray(xs), np.asarray(ys)
+    A = np.stack([np.ones_like(x), np.maximum(x, 0)], axis=1) / y[:, None]
+    a, b = np.linalg.lstsq(A, np.ones_like(y), rcond=None)[0]
+    if b < 0:  # no shot-noise range measured: a constant
+        a, b = float(np.median(y)), 0.0
+    elif a < 0:  # no read-noise floor measured: proportional to the level
+        b, a = float(np.median(y / np.maximum(x, 1e-12))), 0.0
+    return float(a), float(b)
+
+
+def group_gains(means: np.ndarray, background: np.ndarray) -> np.ndarray:
+    """(G,) each group's brightness relative to the median group, measured on background pixels brighter than
+    their median (LEDs or exposure drifting between turntable positions); 1 where it cannot be measured."""
+    if not background.any():
+        return np.ones(len(means), np.float32)
+    lum = means[:, background].mean(axis=-1)  # (G, n)
+    ref = np.median(lum, axis=0)
+    lit = ref > np.median(ref)
+    if np.count_nonzero(lit) < 20:
+        return np.ones(len(means), np.float32)
+    return np.median(lum[:, lit] / ref[lit], axis=1).astype(np.float32)
+
+
+def match_counts(
+    means: np.ndarray, pixels: np.ndarray, noise: list[tuple[float, float]], sigmas: float
+) -> np.ndarray:
+    """(G, n): for each group and each of the n `pixels` (flat indices), how many other groups' means agree with
+    it in every channel within `sigmas` of the noise of a difference (2 x the fitted variance at their level)."""
+    g = len(means)
+    vals = means.reshape(g, -1, 3)[:, pixels]  # (G, n, 3)
+    counts = np.zeros((g, len(pixels)), np.int16)
+    a = np.array([n[0] for n in noise], np.float32)
+    b = np.array([n[1] for n in noise], np.float32)
+    for i in range(g):
+        for k in range(i + 1, g):
+            level = np.maximum(0.5 * (vals[i] + vals[k]), 0)
+            var2 = 2.0 * (a + b * level)
+            ok = np.all((vals[i] - vals[k]) ** 2 <= sigmas * sigmas * var2, axis=-1)
+            counts[i] += ok
+            counts[k] += ok
+    return counts
+
+
+def consistent_masks(
+    means: np.ndarray, masks: np.ndarray, config: PreprocessConfig, own: np.ndarray | None = None
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """(masks, info): each view's mask less the pixels fixed to the camera (module doc). `means` (G, h, w, 3) the
+    views' mean images (same frames), `masks` (G, h, w) the masks to clean (the views' inclusive masks), `own`
+    what a view keeps where the step cannot run or gives up (default: `masks`). The noise is measured outside
+    every mask dilated by `band_width`; what is left is cleaned like a view's mask (components, holes)."""
+    own = masks if own is None else own
+    import cv2
+
+    from lightstage.preprocess.segment import _disk, fill_holes, keep_components
+
+    sigmas, max_removed, band = config.background_sigmas, config.consistency_max_removed, config.band_width
+
+    g = len(means)
+    info: dict[str, Any] = {"groups": g}
+    if g < MIN_GROUPS:
+        info["skipped"] = f"{g} group(s) with the same frames (needs {MIN_GROUPS})"
+        return own, info
+    union = np.any(masks, axis=0)
+    near = cv2.dilate(union.astype(np.uint8), _disk(max(band, 1))).astype(bool)
+    background = ~near
+    gains = group_gains(means, background)
+    means = means / gains[:, None, None, None]
+    # noise of the mean images, per channel, from consecutive groups at pixels no group has in its mask
+    noise = []
+    for c in range(3):
+        lv = np.concatenate(
+            [0.5 * (means[i][background, c] + means[(i + 1) % g][background, c]) for i in range(g)]
+        )
+        df = np.concatenate([means[i][background, c] - means[(i + 1) % g][background, c] for i in range(g)])
+        fit = noise_fit(lv, df)
+        if fit is None:
+            info["skipped"] = "no background to measure the noise on"
+            return own, info
+        noise.append(fit)
+    info["noise"] = [[float(f"{a:.3g}"), float(f"{b:.3g}")] for a, b in noise]
+    info["gains"] = [round(float(x), 4) for x in gains]
+    pixels = np.flatnonzero(union)
+    counts = match_counts(means, pixels, noise, sigmas)
+    need = g // 2  # half of the other groups, at least (4 of 8)
+    weak = min(2, need)  # ... or, next to such pixels, two others (the object covers it in the rest)
+    info["matches_needed"] = [int(need), int(weak)]
+    out = masks.copy()
+    removed = []
+    for i in range(g):
+        strong = _fixed(counts[i] >= need, pixels, masks[i], config.open_radius)
+        grow = _fixed(counts[i] >= weak, pixels, masks[i], config.open_radius) | strong
+        _, labels = cv2.connectedComponents(grow.astype(np.uint8), connectivity=8)
+        seeded = np.unique(labels[strong])
+        fixed = np.isin(labels, seeded[seeded > 0])
+        n = int(np.count_nonzero(fixed))
+        total = int(np.count_nonzero(masks[i]))
+        if n == 0:
+            removed.append(0)
+            continue
+        if n > max_removed * total:
+            removed.append(-n)  # not removed: the object itself looks fixed to the camera
+            out[i] = own[i]
+            continue
+        m = keep_components(masks[i] & ~fixed, config)
+        if config.fill_holes:
+            m = fill_holes(m)
+        out[i] = m
+        removed.append(int(np.count_nonzero(masks[i] & ~m)))
+    info["removed"] = removed
+    return out, info
+
+
+def _fixed(agree: np.ndarray, pixels: np.ndarray, mask: np.ndarray, radius: int) -> np.ndarray:
+    """(h, w) bool: the masked pixels among `pixels` (flat indices) where `agree`, less single pixels and thin
+    lines that agree by chance (dark or plain parts of the object: an opening of `radius`)."""
+    import cv2
+
+    from lightstage.preprocess.segment import _disk
+
+    out = np.zeros(mask.shape, bool)
+    out.flat[pixels] = agree
+    out &= mask
+    if radius:
+        out = cv2.morphologyEx(out.astype(np.uint8), cv2.MORPH_OPEN, _disk(radius)) > 0
+    return out
