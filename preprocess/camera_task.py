@@ -19,7 +19,7 @@ from lightstage.atomic import write_json_atomic
 from lightstage.errors import LightstageError
 from lightstage.ids import ViewId
 from lightstage.preprocess.config import PreprocessConfig
-from lightstage.preprocess.jobs import VIEW_RECORD, ViewRecord
+from lightstage.preprocess.jobs import VIEW_RECORD, ViewRecord, camera_marker
 from lightstage.workdir import WorkDir
 
 CAMERA_FORMAT = 1  # bumped when the step changes meaning
@@ -35,10 +35,6 @@ class CameraJob:
     config: PreprocessConfig
     gt_masks: tuple[str | None, ...]
     key: str
-
-
-def camera_marker(work: WorkDir, camera: str) -> Path:
-    return work.preprocess_dir / "cameras" / f"{camera}.json"
 
 
 def camera_key(camera: str, groups: list[str], config: PreprocessConfig) -> str:

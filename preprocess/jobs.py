@@ -113,6 +113,11 @@ def partial_path(work: WorkDir, view: ViewId, index: int, key: str) -> Path:
     return work.view_dir(view) / PARTIALS / f"chunk{index:04d}-{key}.npz"
 
 
+def camera_marker(work: WorkDir, camera: str) -> Path:
+    """The camera step's marker (camera_task.py): written last, removed by a view task that rewrites a view."""
+    return work.preprocess_dir / "cameras" / f"{camera}.json"
+
+
 def sfm_frame_path(work: WorkDir, view: ViewId, light: int) -> Path:
     """Where a chunk leaves an SfM light's frame at the SfM resolution for its view task (float32 .npy)."""
     return work.view_dir(view) / PARTIALS / f"sfm-{light:03d}.npy"

@@ -15,13 +15,13 @@ import numpy as np
 from lightstage.atomic import write_json_atomic
 from lightstage.errors import LightstageError
 from lightstage.ids import FrameId, ViewId
-from lightstage.preprocess.camera_task import camera_marker
 from lightstage.preprocess.jobs import (
     PARTIALS,
     VIEW_RECORD,
     ChunkRecord,
     ViewJob,
     ViewRecord,
+    camera_marker,
     file_signature,
     partial_path,
     remove_stale_temps,
