@@ -4,7 +4,8 @@ Every visible file below WORK counts by its relative path and bytes, except the 
 (`reports/`: timings, hosts, the pipeline's records), `capture.txt` (an absolute path) and logs (`*.log`,
 timestamped). JSON outputs are hashed without the keys that differ between two runs of the same code
 (timings such as `seconds`, `created`; the cache keys `inputs_key`/`inputs_hash` over mtimes; the counts of
-frames a task processed or reused, which a killed and resumed task splits differently), with the work
+frames a task processed or reused, which a killed and resumed task splits differently, and which decoder
+decoded them, which `decoder: auto` measures in each run), with the work
 and capture paths replaced by placeholders, so runs in different folders compare equal. Calibration's SfM
 is deterministic only with one pycolmap thread: compare runs made with `calibrate: {num_threads: 1}`.
 
@@ -28,6 +29,7 @@ EXCLUDED_TOP = ("reports", "capture.txt")
 TIMING_KEYS = frozenset(
     {"seconds", "cpu_seconds", "created", "started", "finished", "timings", "inputs_key", "inputs_hash"}
     | {"processed", "reused", "resumed"}
+    | {"decoded", "decoder_probe"}  # which decoder ran how many frames (decoder: auto measures per run)
 )
 
 
