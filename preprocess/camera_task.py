@@ -66,7 +66,7 @@ def finalise_camera(job: CameraJob) -> dict[str, ViewRecord]:
     from lightstage.frames import write_image
     from lightstage.preprocess.consistency import consistent_masks
     from lightstage.preprocess.segment import iou, mask_flags, zone_map
-    from lightstage.preprocess.view_task import read_gt_mask
+    from lightstage.preprocess.view_task import foreground_level, read_gt_mask
 
     work = WorkDir.at(job.work_root)
     cfg = job.config
@@ -116,7 +116,7 @@ def finalise_camera(job: CameraJob) -> dict[str, ViewRecord]:
         rec.foreground_fraction = float(mask.mean())
         group_flags = [f for f in rec.flags if f.startswith("foreground fraction ")]
         rec.flags = mask_flags(mask, cfg) + group_flags
-        rec.exposure_level = _level(means[g], mask, cfg.exposure_percentile)
+        rec.exposure_level = foreground_level(means[g], mask, cfg.exposure_percentile)
         rec.sfm_level = _sfm_level(work, view, mask, cfg.exposure_percentile)
         vdir = work.view_dir(view)
         write_image(work.mask(view), (mask * 255).astype(np.uint8))
@@ -126,19 +126,14 @@ def finalise_camera(job: CameraJob) -> dict[str, ViewRecord]:
     return records
 
 
-def _level(rgb: np.ndarray, mask: np.ndarray, percentile: float) -> float:
-    from lightstage.preprocess.view_task import _foreground_level
-
-    return _foreground_level(rgb, mask, percentile)
-
-
 def _sfm_level(work: WorkDir, view: ViewId, mask: np.ndarray, percentile: float) -> float:
     """The SfM image's exposure level under the final mask (upsampled like sfm_mask.png)."""
     from lightstage.frames import read_exr
     from lightstage.preprocess.sfm_image import upsample_mask
+    from lightstage.preprocess.view_task import foreground_level
 
     path = work.sfm_hdr(view)
     if not os.path.isfile(path):
         return 0.0
     sfm = read_exr(path).astype(np.float32)
-    return _level(sfm, upsample_mask(mask, (sfm.shape[1], sfm.shape[0])) > 0, percentile)
+    return foreground_level(sfm, upsample_mask(mask, (sfm.shape[1], sfm.shape[0])) > 0, percentile)

@@ -33,6 +33,7 @@ import numpy as np
 
 from lightstage.preprocess.config import PreprocessConfig
 from lightstage.preprocess.stats import LADDER_STOPS, ViewStats
+from lightstage.tonemap import luminance
 from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND
 
 
@@ -222,7 +223,7 @@ def colour_refine(
     if config.colour_band <= 0 or not mask.any() or mask.all():
         return mask
     rgb = np.maximum(stats.mean.astype(np.float32), 0)
-    lum = np.maximum(rgb @ np.array([0.2126, 0.7152, 0.0722], np.float32), 1e-12)
+    lum = np.maximum(luminance(rgb), 1e-12)
     chroma = np.log(np.maximum(rgb, 1e-12) / lum[..., None])[..., [0, 2]]  # log r/Y, log b/Y
     sigma = 2.0 * max(config.colour_band, 1)
     m8 = mask.astype(np.uint8)

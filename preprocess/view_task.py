@@ -81,13 +81,13 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
     scores = flare_scores(lum_thumbs, sat_thumbs, mask, cfg.flare_dilate, job.cutoff, cfg.flare_thumb)
     lights = list(stats.lights)
     rejected = [lt for lt, s in zip(lights, scores, strict=True) if s > cfg.flare_threshold]
-    level = _foreground_level(stats.mean, mask, cfg.exposure_percentile)
+    level = foreground_level(stats.mean, mask, cfg.exposure_percentile)
     gt_iou = None
     if job.gt_mask and Path(job.gt_mask).is_file():
         gt_iou = iou(mask, read_gt_mask(job.gt_mask, (w, h)))
     sfm, sfm_lights = _sfm_image(work, job, set(lights) - set(rejected))
     sfm_mask = upsample_mask(mask, (sfm.shape[1], sfm.shape[0])) > 0
-    sfm_level = _foreground_level(sfm, sfm_mask, cfg.exposure_percentile)
+    sfm_level = foreground_level(sfm, sfm_mask, cfg.exposure_percentile)
 
     vdir = work.view_dir(view)
     # the camera's cross-group step must run again on this view's new outputs (camera_task.py)
@@ -141,7 +141,7 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
     return record
 
 
-def _foreground_level(rgb: np.ndarray, mask: np.ndarray, percentile: float) -> float:
+def foreground_level(rgb: np.ndarray, mask: np.ndarray, percentile: float) -> float:
     """The luminance percentile of an image's foreground (0 without one): what the capture's exposure maps to 1."""
     from lightstage.tonemap import luminance
 
