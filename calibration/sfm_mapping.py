@@ -142,6 +142,10 @@ def refine_from_initial(
         tri.complete_max_reproj_error = float(thr)
         tri.min_angle = 1.0
         mapping.mapper.filter_max_reproj_error = float(thr)
+        # COLMAP's triangulator ends with its own global refinement (default 5 x 50 non-robust BA iterations);
+        # one short pass is enough to complete/merge tracks and filter, as the robust BA below follows.
+        mapping.ba_global_max_refinements = options.triangulation_ba_refinements
+        mapping.ba_global_max_num_iterations = options.triangulation_ba_iterations
         rec = pycolmap.triangulate_points(
             rec, db_path, image_dir, sparse_dir, clear_points=True, options=mapping
         )
