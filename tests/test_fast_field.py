@@ -143,3 +143,26 @@ def test_per_ray_transfer_equals_per_sample(per_ray_light):
     want = torch.exp(field.head(inputs))  # the head as one MLP on the concatenated inputs
     torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(field.transfer(feat, v, lt), want, rtol=1e-5, atol=1e-6)
+
+
+def test_occupancy_updates_only_its_region():
+    """An update evaluates the density only in the region's cells (the hull prior, else the cells overlapping
+    the box); cells outside stay empty even where the untrained field is dense."""
+    from lightstage.training.occupancy import OccupancyGrid, box_cells
+
+    region = box_cells(torch.tensor([-0.5, -1.0, -1.0]), torch.tensor([-0.2, 1.0, 1.0]), 8)
+    # cells of 0.25 meeting x in [-0.5, -0.2] (closed: a cell that only touches counts): x cells 1, 2, 3
+    assert region.sum() == 3 * 8 * 8 and region[1:4].all()
+    occ = OccupancyGrid(8, 0.95, 1.0, region)
+    seen = []
+    occ.update(lambda x: (seen.append(x), torch.full((len(x),), 100.0))[1], seed=0)
+    pts = torch.cat(seen)
+    assert len(pts) == int(region.sum()) and (pts[:, 0] >= -0.75).all() and (pts[:, 0] <= 0.0).all()
+    assert (occ.grid > occ.density_threshold).eq(region).all()
+    cfg = load_config("cpu").model
+    hull = torch.zeros(10, 10, 10, dtype=torch.bool)
+    hull[4:6, 4:6, 4:6] = True
+    model = RelightModel(cfg, [0.0, 0.0, 0.0], 1.0, box=[[-0.5] * 3, [0.5] * 3], hull=hull)
+    model.occupancy.update(lambda x: torch.full((len(x),), 1e6), seed=1)
+    assert model.occupancy.occupied_fraction() == float(model.occupancy.region.float().mean())
+    assert not model.occupancy.occupied(torch.tensor([[0.4, 0.4, 0.4]])).any()

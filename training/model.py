@@ -15,7 +15,7 @@ from lightstage.training.config import ModelConfig
 from lightstage.training.hashgrid import HashGridField
 from lightstage.training.light_model import point_light
 from lightstage.training.mlp_field import MLPField
-from lightstage.training.occupancy import OccupancyGrid, density_threshold, hull_prior
+from lightstage.training.occupancy import OccupancyGrid, box_cells, density_threshold, hull_prior
 from lightstage.training.render import composite, volume_weights
 from lightstage.training.sampling import merge_edges, midpoints, ray_box, resample_edges, stratified_edges
 
@@ -54,7 +54,9 @@ class RelightModel(nn.Module):
         if cfg.occupancy.enabled:
             first_pass = cfg.n_coarse if cfg.n_coarse > 0 else cfg.n_fine
             threshold = density_threshold(cfg.occupancy.min_alpha, first_pass)
-            self.occupancy = OccupancyGrid(cfg.occupancy.resolution, cfg.occupancy.decay, threshold)
+            res = cfg.occupancy.resolution
+            region = box_cells(self.box[0].cpu(), self.box[1].cpu(), res)
+            self.occupancy = OccupancyGrid(res, cfg.occupancy.decay, threshold, region)
             if hull is not None and box is not None:
                 prior = hull_prior(torch.as_tensor(hull), self.box[0], self.box[1], cfg.occupancy.resolution)
                 self.occupancy.set_prior(prior)
