@@ -91,17 +91,36 @@ def decode_raw(path: str | os.PathLike[str], size: tuple[int, int]) -> np.ndarra
 
 class BandDownscaler:
     """Exact `factor`x area average of a frame fed as row bands (multiples of `factor` rows, top to bottom),
-    plus the saturation flags; the float32 band buffer is reused, so a frame never exists in float32."""
+    plus the saturation flags; the float32 band buffer is reused, so a frame never exists in float32.
+    `out`: (rgb, saturated) arrays to fill instead of new ones (a chunk task reuses one pair for its frames:
+    fresh memory costs page faults, docs/benchmarks.md)."""
 
-    def __init__(self, size: tuple[int, int], cutoff: float, band_rows: int, factor: int = DOWNSCALE) -> None:
+    def __init__(
+        self,
+        size: tuple[int, int],
+        cutoff: float,
+        band_rows: int,
+        factor: int = DOWNSCALE,
+        out: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> None:
         import torch
 
         W, H = size
         if H % factor or W % factor:
             raise LightstageError(f"frame {W}x{H}: size must be a multiple of {factor}")
         self.factor, self.size, self.cutoff = factor, (W, H), cutoff
-        self.rgb = np.empty((H // factor, W // factor, 3), np.float32)
-        self.saturated = np.zeros((H // factor, W // factor), bool)
+        shape = (H // factor, W // factor)
+        if out is None:
+            out = (np.empty((*shape, 3), np.float32), np.empty(shape, bool))
+        self.rgb, self.saturated = out
+        if not (
+            self.rgb.shape == (*shape, 3)
+            and self.rgb.dtype == np.float32
+            and self.saturated.shape == shape
+            and self.saturated.dtype == bool
+            and self.rgb.flags.c_contiguous
+        ):
+            raise LightstageError(f"output buffers do not fit a {W}x{H} frame downscaled {factor}x")
         self._buf = torch.empty((min(band_rows, H), W, 3), dtype=torch.float32)
         self._cut_bits = int(saturation_half(cutoff).view(np.int16))
         self._row = 0
@@ -128,12 +147,16 @@ class BandDownscaler:
             lo, hi = (int(v) for v in torch.aminmax(torch.from_numpy(bits)))
             if hi >= self._cut_bits:
                 self.saturated[rows] = _block_any((bits >= self._cut_bits).any(axis=-1), f)
+            else:
+                self.saturated[rows] = False
             if lo < 0 or hi >= 0x7C00:
                 self._count_bad(buf)
         else:
             lo, hi = (float(v) for v in torch.aminmax(buf))
             if hi >= self.cutoff:
                 self.saturated[rows] = _block_any((buf.numpy() >= self.cutoff).any(axis=-1), f)
+            else:
+                self.saturated[rows] = False
             if not (lo >= 0.0 and hi < np.inf):
                 self._count_bad(buf)
         self._row = y + n
@@ -151,14 +174,21 @@ class BandDownscaler:
         return Downscaled(self.rgb, self.saturated, self.non_finite, self.negative)
 
 
-def downscale(pixels: np.ndarray, cutoff: float, band_rows: int = 256, factor: int = DOWNSCALE) -> Downscaled:
+def downscale(
+    pixels: np.ndarray,
+    cutoff: float,
+    band_rows: int = 256,
+    factor: int = DOWNSCALE,
+    out: tuple[np.ndarray, np.ndarray] | None = None,
+) -> Downscaled:
     """Exact `factor`x area average of (H, W, 3) half/float pixels in float32, and the saturation flags
-    (a processed pixel is saturated when any channel of any of its factor^2 sources is >= cutoff)."""
+    (a processed pixel is saturated when any channel of any of its factor^2 sources is >= cutoff); `out` as
+    for `BandDownscaler`."""
     H, W, C = pixels.shape
     if H % factor or W % factor or C != 3:
         raise LightstageError(f"frame {W}x{H}x{C}: size must be a multiple of {factor} with 3 channels")
     band_rows = max(factor, band_rows - band_rows % factor)
-    scaler = BandDownscaler((W, H), cutoff, band_rows, factor)
+    scaler = BandDownscaler((W, H), cutoff, band_rows, factor, out)
     pixels = np.asarray(pixels)
     for y in range(0, H, band_rows):
         scaler.add(pixels[y : y + band_rows])
@@ -188,9 +218,11 @@ def decode_downscale_factors(
     cutoff: float,
     band_rows: int,
     factors: tuple[int, ...],
+    out: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> list[Downscaled]:
     """`decode_downscale` at several factors from one banded decode (the processed frame and the SfM image's
-    frame of a chunk task), each exactly `downscale(decode_raw(...), factor=f)`."""
+    frame of a chunk task), each exactly `downscale(decode_raw(...), factor=f)`; `out` (as for
+    `BandDownscaler`) receives the first factor's."""
     import math
 
     import OpenImageIO as oiio
@@ -210,7 +242,9 @@ def decode_downscale_factors(
         lo, hi = min(idx), max(idx) + 1
         pick = None if idx == list(range(lo, hi)) else [i - lo for i in idx]
         y0 = spec.y
-        scalers = [BandDownscaler(size, cutoff, band_rows, f) for f in factors]
+        scalers = [
+            BandDownscaler(size, cutoff, band_rows, f, out if i == 0 else None) for i, f in enumerate(factors)
+        ]
         for y in range(0, H, band_rows):
             n = min(band_rows, H - y)
             band = inp.read_scanlines(0, 0, y0 + y, y0 + y + n, 0, lo, hi, kind)

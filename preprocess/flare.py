@@ -27,16 +27,21 @@ class Thumbnail:
     saturated: np.ndarray  # (th, tw) float32, fraction of saturated processed pixels
 
 
-def thumbnail(lum: np.ndarray, saturated: np.ndarray, factor: int) -> Thumbnail:
+def thumbnail(
+    lum: np.ndarray, saturated: np.ndarray, factor: int, scratch: np.ndarray | None = None
+) -> Thumbnail:
     """Area-average thumbnails (factor x smaller, at least 1x1) of luminance and saturation flags; the last
-    rows/columns that do not fill a block are left out (OpenCV's integer-factor path, 5x faster)."""
+    rows/columns that do not fill a block are left out (OpenCV's integer-factor path, 5x faster).
+    `scratch`: a float32 array of lum's shape for the flags as numbers (a chunk task reuses one)."""
     import cv2
 
     lum, saturated = _whole_blocks(lum, factor), _whole_blocks(saturated, factor)
     h, w = lum.shape
     size = (max(1, w // factor), max(1, h // factor))
     t_lum = cv2.resize(lum, size, interpolation=cv2.INTER_AREA)
-    t_sat = cv2.resize(saturated.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    flags = np.empty(saturated.shape, np.float32) if scratch is None else _whole_blocks(scratch, factor)
+    np.copyto(flags, saturated)
+    t_sat = cv2.resize(flags, size, interpolation=cv2.INTER_AREA)
     return Thumbnail(t_lum, t_sat)
 
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -28,9 +27,6 @@ from lightstage.preprocess.jobs import (
 )
 from lightstage.workdir import DOWNSCALE, WorkDir
 
-if TYPE_CHECKING:
-    from lightstage.records.processed import HalfRounder
-
 
 # ---- the chunk task -------------------------------------------------------------------------------------------
 def process_chunk(job: ChunkJob) -> ChunkRecord:
@@ -40,8 +36,6 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
     task before its partial is saved, so nothing of it is remembered and a retry or a rerun redoes the chunk."""
     from lightstage.preprocess.flare import lit_threshold, thumbnail
     from lightstage.preprocess.stats import StatsAccumulator
-    from lightstage.records.processed import HalfRounder
-    from lightstage.tonemap import luminance
 
     if in_dask_worker():
         from lightstage.threads import set_library_threads
@@ -75,7 +69,7 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
         partial.parent, [partial.stem, *(sfm_frame_path(work, view, lt).stem for lt in job.lights)]
     )
     acc = StatsAccumulator(h, w, job.cutoff)
-    rounder = HalfRounder(h, w)
+    buffers = FrameBuffers(h, w)
     thumbs, sthumbs, taus = [], [], []
     problems: list[tuple[int, str]] = []
     processed = reused = 0
@@ -84,7 +78,7 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
     gains = job.intensities or ((1.0, 1.0, 1.0),) * len(job.lights)
     for light, raw, gain in zip(job.lights, job.raw_paths, gains, strict=True):
         try:
-            rgb32, sat, made = frame_for_stats(job, light, raw, gain, rounder)
+            rgb32, sat, made = frame_for_stats(job, light, raw, gain, buffers)
         except EnvironmentFault:
             raise  # the machine, not the frame: fail the task (retried), never a bad frame
         except Exception as e:  # noqa: BLE001 - one bad frame must not stop the batch
@@ -96,14 +90,14 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
             continue
         processed += made
         reused += not made
-        lum = luminance(rgb32)
-        th = thumbnail(lum, sat, cfg.flare_thumb)
+        lum = buffers.luminance(rgb32)
+        th = thumbnail(lum, sat, cfg.flare_thumb, buffers.scratch)
         tau = lit_threshold(th, job.cutoff, cfg.lit_ratio, cfg.lit_floor)
         acc.add(light, rgb32, sat, tau, lum)
         thumbs.append(th.lum)
         sthumbs.append(th.saturated.astype(np.float16))
         taus.append(tau)
-    stats = acc.finish()
+    stats = acc.finish(reuse=True)  # saved right away: no copies
     records = {"problems": problems, "processed": processed, "reused": reused}
     th_shape = thumb_shape(h, w, cfg.flare_thumb)
     stats.save(
@@ -129,13 +123,38 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
     )
 
 
+class FrameBuffers:
+    """The arrays a chunk task makes each of its frames in, allocated once per chunk: on some VMs the kernel's
+    cost of fresh memory (page faults, huge-page zeroing) rivals the work done in it (docs/benchmarks.md)."""
+
+    def __init__(self, height: int, width: int) -> None:
+        from lightstage.records.processed import HalfRounder
+
+        self.rgb = np.empty((height, width, 3), np.float32)
+        self.saturated = np.empty((height, width), bool)
+        self.rounder = HalfRounder(height, width)
+        self.lum = np.empty((height, width), np.float32)
+        self.scratch = np.empty((height, width), np.float32)  # flare.thumbnail's flags
+
+    def luminance(self, rgb: np.ndarray) -> np.ndarray:
+        """`lightstage.tonemap.luminance` of a frame, into the reused luminance buffer."""
+        import cv2
+
+        from lightstage.tonemap import LUMA
+
+        return cv2.transform(
+            np.ascontiguousarray(rgb, np.float32), np.array([LUMA], np.float32), dst=self.lum
+        )
+
+
 def frame_for_stats(
-    job: ChunkJob, light: int, raw: str, gain: tuple[float, float, float], rounder: HalfRounder
+    job: ChunkJob, light: int, raw: str, gain: tuple[float, float, float], buffers: FrameBuffers
 ) -> tuple[np.ndarray, np.ndarray, bool]:
     """One frame of the chunk as the statistics see it: ((h, w, 3) float32 as stored, (h, w) saturated, True
-    when it was made now). A valid processed frame is read back; otherwise the raw frame is decoded, judged
-    (pixel policy), scaled, written, and for an SfM light also downscaled to the SfM image's resolution.
-    Content errors raise a LightstageError naming the raw file; failing to write is an EnvironmentFault."""
+    when it was made now; a decoded frame lives in `buffers` until the next). A valid processed frame is read
+    back; otherwise the raw frame is decoded, judged (pixel policy), scaled, written, and for an SfM light also
+    downscaled to the SfM image's resolution. Content errors raise a LightstageError naming the raw file;
+    failing to write is an EnvironmentFault."""
     from lightstage.records.processed import processed_ok, read_processed_half, to_float, write_processed
 
     cfg, work = job.config, WorkDir.at(job.work_root)
@@ -150,7 +169,7 @@ def frame_for_stats(
             raise
         except LightstageError:
             pass  # our own output is unreadable: make it again from the raw frame
-    small, sfm = decode_frame(job, raw, light in job.sfm_lights)
+    small, sfm = decode_frame(job, raw, light in job.sfm_lights, (buffers.rgb, buffers.saturated))
     verdict = pixel_verdict(small.non_finite, small.negative)
     if not verdict.ok:
         raise LightstageError(f"{raw}: {verdict.status.replace('_', '-')} pixels ({verdict.message})")
@@ -158,10 +177,16 @@ def frame_for_stats(
     if job.exposure_scale != 1.0:
         rgb32 *= np.float32(job.exposure_scale)
     if tuple(gain) != (1.0, 1.0, 1.0):  # equal white lights downstream
-        rgb32 *= (1.0 / np.asarray(gain, np.float64)).astype(np.float32)
+        # each row times the per-channel scales tiled along it: numpy's broadcast multiply over the last
+        # axis of 3 (the same float32 products) runs 10x slower
+        scale = (1.0 / np.asarray(gain, np.float64)).astype(np.float32)
+        rows = rgb32.reshape(rgb32.shape[0], -1)
+        np.multiply(rows, np.tile(scale, rgb32.shape[1]), out=rows)
     check_finite(rgb32, raw)
     try:
-        write_processed(out, rounder(rgb32), sat, cfg.compression)  # rgb32 now holds the stored values
+        write_processed(
+            out, buffers.rounder(rgb32), sat, cfg.compression
+        )  # rgb32 now holds the stored values
         if sfm is not None:
             save_array_atomic(sfm_frame_path(work, ViewId(job.group, job.camera), light), sfm)
     except Exception as e:  # noqa: BLE001 - our outputs, not the raw frame: the disk or the directory failed
@@ -169,20 +194,24 @@ def frame_for_stats(
     return rgb32, sat, True
 
 
-def decode_frame(job: ChunkJob, raw: str, for_sfm: bool) -> tuple[Downscaled, np.ndarray | None]:
-    """Decode a raw frame (read first within the read timeout) into its processed-size downscale and, when
-    `for_sfm`, its downscale at the SfM image's factor (x exposure_scale, as sfm_image.sfm_mean_image makes
-    it), both from one decode, with the configured decoder or the one this process measured cheaper (`auto`,
-    preprocess.decoder_choice)."""
+def decode_frame(
+    job: ChunkJob, raw: str, for_sfm: bool, out: tuple[np.ndarray, np.ndarray] | None = None
+) -> tuple[Downscaled, np.ndarray | None]:
+    """Decode a raw frame (read first within the read timeout) into its processed-size downscale (into `out`'s
+    rgb and saturation arrays when given) and, when `for_sfm`, its downscale at the SfM image's factor
+    (x exposure_scale, as sfm_image.sfm_mean_image makes it), both from one decode, with the configured
+    decoder or the one this process measured cheaper (`auto`, preprocess.decoder_choice)."""
     cfg = job.config
     prefetch_file(raw, cfg.read_timeout_s)
     factors = (DOWNSCALE, job.sfm_factor) if for_sfm and job.sfm_factor < DOWNSCALE else (DOWNSCALE,)
 
     def decode(decoder: str) -> list[Downscaled]:
         if decoder == "bands":
-            return decode_downscale_factors(raw, job.raw_size, job.cutoff, cfg.band_rows, factors)
+            return decode_downscale_factors(raw, job.raw_size, job.cutoff, cfg.band_rows, factors, out)
         pixels = decode_raw(raw, job.raw_size)
-        return [downscale(pixels, job.cutoff, cfg.band_rows, f) for f in factors]
+        return [
+            downscale(pixels, job.cutoff, cfg.band_rows, f, out if f == DOWNSCALE else None) for f in factors
+        ]
 
     outs, _ = process_chooser().run(cfg.decoder, decode)
     if len(outs) == 1:

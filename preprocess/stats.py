@@ -40,6 +40,8 @@ class ViewStats:
     peak: max luminance; saturated: frames flagged saturated; lit: unsaturated frames whose luminance
     exceeded that frame's lit threshold; lum_sum: luminance summed over unsaturated frames; ladder: (K, h, w)
     unsaturated frames brighter than each level of `ladder_levels` (empty (0, h, w) when not accumulated).
+    The counts (saturated, lit, ladder) are uint16; only `StatsAccumulator.finish(reuse=True)` leaves them
+    uint8, and `load` and `merge` widen them.
     """
 
     count: int
@@ -126,10 +128,12 @@ class ViewStats:
             mean=mean.astype(np.float32),
             m2=m2.astype(np.float32),
             peak=np.maximum(self.peak, other.peak),
-            saturated=self.saturated + other.saturated,
-            lit=self.lit + other.lit,
+            saturated=np.add(self.saturated, other.saturated, dtype=np.uint16),
+            lit=np.add(self.lit, other.lit, dtype=np.uint16),
             lum_sum=self.lum_sum + other.lum_sum,
-            ladder=self.ladder + other.ladder if len(self.ladder) == len(other.ladder) else _no_ladder(self),
+            ladder=np.add(self.ladder, other.ladder, dtype=np.uint16)
+            if len(self.ladder) == len(other.ladder)
+            else _no_ladder(self),
         )
 
     # ---- files ---------------------------------------------------------------------------------------
@@ -168,15 +172,20 @@ class ViewStats:
                 mean=data.pop("mean"),
                 m2=data.pop("m2"),
                 peak=data.pop("peak"),
-                saturated=data.pop("saturated"),
-                lit=data.pop("lit"),
+                saturated=_widen(data.pop("saturated")),
+                lit=_widen(data.pop("lit")),
                 lum_sum=data.pop("lum_sum"),
-                ladder=data.pop("ladder", None),
+                ladder=_widen(data.pop("ladder", None)),
             )
         except KeyError as e:
             raise LightstageError(f"{path}: statistics lack {e}") from None
         stats.extras = data
         return stats
+
+
+def _widen(counts: np.ndarray | None) -> np.ndarray | None:
+    """Counts as uint16 (a chunk's partial keeps counts of fewer than 256 frames in uint8)."""
+    return counts.astype(np.uint16) if counts is not None and counts.dtype == np.uint8 else counts
 
 
 def _no_ladder(s: ViewStats) -> np.ndarray:
@@ -218,20 +227,33 @@ def merge_tree(parts: Iterable[ViewStats]) -> ViewStats | None:
 
 
 class StatsAccumulator:
-    """Streams frames of one chunk of lights into float32 sums; `finish` converts to ViewStats."""
+    """Streams frames of one chunk of lights into float32 sums and integer counts; `finish` converts to
+    ViewStats.
+
+    The per-pixel counts (ladder levels, lit, saturated) run in uint8 and are added into uint16 totals every
+    `COUNT_STRETCH` frames: half the memory traffic of uint16 counters. The ladder takes one pass to find, per
+    pixel, how many levels the luminance does not exceed (`_levels_below`), then one uint8 compare per level,
+    instead of a float compare per level (3x cheaper at 2048x1366, the same counts)."""
 
     def __init__(self, height: int, width: int, cutoff: float | None = None):
         """`cutoff`: the stage's saturation cutoff, for the brightness ladder (None: no ladder)."""
         self.height, self.width = height, width
         self.levels = ladder_levels(cutoff) if cutoff is not None else np.zeros(0, np.float32)
-        self.ladder = np.zeros((len(self.levels), height, width), np.uint16)
+        self._top = _ladder_top_bits(self.levels)
+        k = len(self.levels)
+        self._lit, self._sat = k, k + 1  # rows of the count arrays after the ladder's
+        self._counts8 = np.zeros((k + 2, height, width), np.uint8)
+        self._counts16: np.ndarray | None = None  # totals of earlier stretches, made at the first flush
+        self._stretch = 0
+        self._spent = False
+        self._bits = np.empty((height, width), np.int32)
+        self._below = np.empty((height, width), np.uint8)
+        self._cmp = np.empty((height, width), np.uint8)
         self.count = 0
         self.lights: list[int] = []
         self.s1 = np.zeros((height, width, 3), np.float32)
         self.s2 = np.zeros((height, width, 3), np.float32)
         self.peak = np.zeros((height, width), np.float32)
-        self.saturated = np.zeros((height, width), np.uint16)
-        self.lit = np.zeros((height, width), np.uint16)
         self.lum_sum = np.zeros((height, width), np.float32)
 
     def add(
@@ -245,50 +267,122 @@ class StatsAccumulator:
         """Accumulate one frame: (h, w, 3) float32 rgb, (h, w) bool saturated, its lit threshold."""
         import cv2
 
+        if self._spent:
+            raise LightstageError("statistics accumulator already finished with reuse")
         if rgb.shape != (self.height, self.width, 3):
             raise LightstageError(f"frame of shape {rgb.shape}, statistics are {self.height}x{self.width}")
         if lum is None:
             lum = luminance(rgb)
-        unsat = np.logical_not(saturated).view(np.uint8)
+        counts, cmp = self._counts8, self._cmp
+        sat = np.ascontiguousarray(saturated, bool).view(np.uint8)
+        unsat = np.bitwise_xor(sat, 1)
         cv2.accumulate(rgb, self.s1)
         cv2.accumulateSquare(rgb, self.s2)
         np.maximum(self.peak, lum, out=self.peak)
-        np.add(self.saturated, saturated, out=self.saturated, casting="unsafe")
+        np.add(counts[self._sat], sat, out=counts[self._sat])
         cv2.accumulate(lum, self.lum_sum, mask=unsat)
-        lit = cv2.compare(lum, float(lit_threshold), cv2.CMP_GT)  # 255 where lit
-        np.bitwise_and(lit, unsat, out=lit)  # 1 where lit and unsaturated
-        np.add(self.lit, lit, out=self.lit, casting="unsafe")
-        for k, level in enumerate(self.levels):
-            above = cv2.compare(lum, float(level), cv2.CMP_GT)
-            np.bitwise_and(above, unsat, out=above)
-            np.add(self.ladder[k], above, out=self.ladder[k], casting="unsafe")
+        cv2.compare(lum, float(lit_threshold), cv2.CMP_GT, dst=cmp)  # 255 where lit
+        np.bitwise_and(cmp, unsat, out=cmp)  # 1 where lit and unsaturated
+        np.add(counts[self._lit], cmp, out=counts[self._lit])
+        if len(self.levels):
+            below = self._levels_below(lum, sat)
+            for k in range(len(self.levels)):
+                cv2.compare(below, k, cv2.CMP_LE, dst=cmp)  # 255 where lum > levels[k]
+                np.subtract(counts[k], cmp, out=counts[k])  # 255 is -1 in uint8: adds one
         self.count += 1
         self.lights.append(int(light))
+        self._stretch += 1
+        if self._stretch == COUNT_STRETCH:
+            self._flush()
 
-    def finish(self) -> ViewStats:
-        """Statistics of the frames added so far (float64 arithmetic for the sums-to-moments step)."""
+    def _levels_below(self, lum: np.ndarray, sat: np.ndarray) -> np.ndarray:
+        """(h, w) uint8: per pixel, how many ladder levels (from the top) the luminance does not exceed; all
+        of them for saturated pixels. The levels are the cutoff's float32 bits minus one exponent step per
+        stop, and non-negative floats order like their int32 bits, so the count is (top bits - lum bits) >> 23,
+        clipped: exactly the strict `lum > level` comparisons of `direct_stats`."""
+        bits, below = self._bits, self._below
+        np.maximum(lum.view(np.int32), 0, out=bits)  # negative values (and -0.0) lie below every level
+        np.subtract(self._top, bits, out=bits)
+        np.right_shift(bits, 23, out=bits)
+        np.clip(bits, 0, len(self.levels), out=bits)
+        np.copyto(below, bits, casting="unsafe")
+        np.copyto(below, len(self.levels), where=sat.view(bool))
+        return below
+
+    def _flush(self) -> None:
+        """Add the uint8 counts of this stretch of frames into the uint16 totals and restart them."""
+        if self._counts16 is None:
+            self._counts16 = self._counts8.astype(np.uint16)
+        else:
+            np.add(self._counts16, self._counts8, out=self._counts16)
+        self._counts8.fill(0)
+        self._stretch = 0
+
+    def _totals(self) -> np.ndarray:
+        """(K + 2, h, w) uint16 counts of all frames added so far (a new array)."""
+        if self._counts16 is None:
+            return self._counts8.astype(np.uint16)
+        return np.add(self._counts16, self._counts8, dtype=np.uint16)
+
+    def finish(self, reuse: bool = False) -> ViewStats:
+        """Statistics of the frames added so far (float64 arithmetic for the sums-to-moments step).
+
+        `reuse`: the statistics take over the accumulator's arrays instead of copies (the mean and m2 are
+        computed in place of the sums, and counts of fewer than 256 frames stay uint8, which `ViewStats.load`
+        widens): a chunk task saves its partial without ~200 MB of fresh arrays at 2048x1366. The accumulator
+        is spent then."""
+        if self._spent:
+            raise LightstageError("statistics accumulator already finished with reuse")
         n = self.count
+        if reuse and self._counts16 is None:
+            counts = self._counts8
+        elif reuse:
+            counts = np.add(self._counts16, self._counts8, out=self._counts16)
+        else:
+            counts = self._totals()
+        ladder, lit, saturated = counts[: self._lit], counts[self._lit], counts[self._sat]
         if n == 0:
             s = empty_stats(self.height, self.width)
-            s.ladder = self.ladder.copy()
+            s.ladder = ladder.astype(np.uint16)
             return s
-        mean = np.empty_like(self.s1)
-        m2 = np.empty_like(self.s2)
+        mean, m2 = (self.s1, self.s2) if reuse else (np.empty_like(self.s1), np.empty_like(self.s2))
         for r in range(0, self.height, 256):  # row bands keep the float64 temporaries small
             s1 = self.s1[r : r + 256].astype(np.float64)
-            mean[r : r + 256] = s1 / n
             m2[r : r + 256] = np.maximum(self.s2[r : r + 256] - s1 * s1 / n, 0.0)
+            mean[r : r + 256] = s1 / n
+        self._spent = reuse
         return ViewStats(
             count=n,
             lights=tuple(self.lights),
             mean=mean,
             m2=m2,
-            peak=self.peak.copy(),
-            saturated=self.saturated.copy(),
-            lit=self.lit.copy(),
-            lum_sum=self.lum_sum.copy(),
-            ladder=self.ladder.copy(),
+            peak=self.peak if reuse else self.peak.copy(),
+            saturated=saturated,
+            lit=lit,
+            lum_sum=self.lum_sum if reuse else self.lum_sum.copy(),
+            ladder=ladder,
         )
+
+
+# uint8 counters of StatsAccumulator are added into the uint16 totals after this many frames (before 256)
+COUNT_STRETCH = 255
+
+
+def _ladder_top_bits(levels: np.ndarray) -> int:
+    """The int32 bits of the level one stop above the first (the cutoff in float32), checking that the levels
+    are normal positive floats one exponent step apart, as `StatsAccumulator._levels_below` needs."""
+    if len(levels) == 0:
+        return 0
+    bits = levels.view(np.int32).astype(np.int64)
+    top = int(bits[0]) + (LADDER_STOPS[0] << 23)
+    expected = top - (np.asarray(LADDER_STOPS, np.int64) << 23)
+    if not (
+        np.isfinite(levels).all() and levels[-1] >= np.finfo(np.float32).tiny and (bits == expected).all()
+    ):
+        raise LightstageError(
+            f"saturation cutoff {levels[0] * 2.0:g}: its brightness ladder is not representable"
+        )
+    return top
 
 
 def direct_stats(

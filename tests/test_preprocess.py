@@ -199,6 +199,64 @@ def test_streaming_stats_equal_direct_and_tree_merge_equals_whole() -> None:
         accumulate([0, 1]).merge(accumulate([1, 2]))
 
 
+def test_ladder_counts_equal_direct_at_level_edges_and_past_255_frames(tmp_path: Path) -> None:
+    """The accumulator's ladder (level index from float bits, uint8 counts widened every 255 frames) counts
+    exactly what `direct_stats` counts with float compares: luminances on, just above and just below each
+    level, negatives, -0.0 and saturated pixels; a partial saved from `finish(reuse=True)` loads the same."""
+    from lightstage.preprocess.stats import ViewStats, ladder_levels
+
+    rng = np.random.default_rng(4)
+    h, w, k = 6, 40, 300
+    levels = ladder_levels(CUTOFF)
+    edge = np.concatenate([levels, np.nextafter(levels, np.float32(0)), np.nextafter(levels, np.float32(9))])
+    frames, sats = [], []
+    for _ in range(k):
+        grey = rng.choice(edge, (h, w)).astype(np.float32)  # luminance of a grey pixel is its value
+        grey[0, :4] = [-0.0, -1e-3, 0.0, CUTOFF * 2]
+        frames.append(np.repeat(grey[..., None], 3, axis=-1))
+        sats.append(rng.random((h, w)) < 0.1)
+    taus = list(rng.uniform(0.0, 0.01, k))
+    lum = [f[..., 0] for f in frames]  # exact: LUMA's weights sum to one only approximately
+    acc = StatsAccumulator(h, w, CUTOFF)
+    for i in range(k):
+        acc.add(i, frames[i], sats[i], taus[i], lum[i])
+    ref = np.stack([(np.stack(lum) > lv) & ~np.stack(sats) for lv in levels]).sum(axis=1)
+    whole = acc.finish()
+    np.testing.assert_array_equal(whole.ladder, ref)
+    assert whole.ladder.dtype == np.uint16
+    np.testing.assert_array_equal(
+        whole.ladder, direct_stats(frames, sats, taus, list(range(k)), CUTOFF).ladder
+    )
+    for n in (5, k):  # uint8 counts (no widening yet) and widened ones
+        acc = StatsAccumulator(h, w, CUTOFF)
+        for i in range(n):
+            acc.add(i, frames[i], sats[i], taus[i], lum[i])
+        copied = acc.finish()
+        acc.finish(reuse=True).save(tmp_path / "p.npz")
+        loaded = ViewStats.load(tmp_path / "p.npz")
+        for key, value in copied.arrays().items():
+            assert loaded.arrays()[key].dtype == value.dtype, key
+            np.testing.assert_array_equal(loaded.arrays()[key], value)
+        with pytest.raises(LightstageError, match="already finished"):
+            acc.add(0, frames[0], sats[0], taus[0])
+
+
+def test_downscale_into_reused_buffers_equals_fresh() -> None:
+    """A chunk task decodes each frame into the same arrays: flags of the previous frame must not survive."""
+    rng = np.random.default_rng(6)
+    first, second = _frame(rng, 32, 48), np.full((32, 48, 3), 0.25, np.float16)
+    out = (np.empty((8, 12, 3), np.float32), np.empty((8, 12), bool))
+    downscale(first, CUTOFF, band_rows=8, out=out)
+    assert out[1].any()
+    d = downscale(second, CUTOFF, band_rows=8, out=out)
+    assert d.rgb is out[0] and d.saturated is out[1]
+    fresh = downscale(second, CUTOFF, band_rows=8)
+    np.testing.assert_array_equal(d.rgb, fresh.rgb)
+    np.testing.assert_array_equal(d.saturated, fresh.saturated)
+    with pytest.raises(LightstageError, match="output buffers do not fit"):
+        downscale(first, CUTOFF, out=(np.empty((8, 12, 3), np.float64), out[1]))
+
+
 def test_config_from_dict_names_bad_keys() -> None:
     assert PreprocessConfig.from_dict({"flare_threshold": 1, "compression": "piz"}).flare_threshold == 1.0
     with pytest.raises(LightstageError, match=r"^p\.yaml: unknown key 'nope' \(known: compression, "):

@@ -44,27 +44,33 @@ class HalfRounder:
     """Rounds (h, w, 3) float32 processed frames to the stored half precision, reusing its buffers.
 
     `__call__` returns the R, G, B half planes the writer stores and rounds the float32 frame in place, so the
-    statistics see exactly the stored values (as a resumed run that reads the frame back does). Reusing one
-    planar buffer per chunk avoids page-faulting fresh memory for every frame.
+    statistics see exactly the stored values (as a resumed run that reads the frame back does). The conversion
+    runs on the interleaved frame (PyTorch's vectorised half conversion, both ways) and OpenCV splits the half
+    bits into planes: 2.5x cheaper than converting through a transposed view. Reusing the buffers per chunk
+    avoids page-faulting fresh memory for every frame.
     """
 
     def __init__(self, height: int, width: int) -> None:
         import torch
 
-        self._planes = torch.empty((3, height, width), dtype=torch.float16)
+        self._half = torch.empty((height, width, 3), dtype=torch.float16)
+        self._planes = np.empty((3, height, width), np.float16)
 
     def __call__(self, rgb: np.ndarray) -> np.ndarray:
         """(3, h, w) float16 planes of `rgb` (valid until the next call); `rgb` is rounded in place."""
+        import cv2
         import torch
 
         t = torch.from_numpy(rgb)
-        if tuple(t.shape) != (*self._planes.shape[1:], 3) or t.dtype != torch.float32:
+        if tuple(t.shape) != tuple(self._half.shape) or t.dtype != torch.float32:
             raise LightstageError(
-                f"frame {t.dtype} {tuple(t.shape)} does not fit a {self._planes.shape} buffer"
+                f"frame {t.dtype} {tuple(t.shape)} does not fit a {tuple(self._half.shape)} buffer"
             )
-        self._planes.copy_(t.permute(2, 0, 1))
-        t.copy_(self._planes.permute(1, 2, 0))
-        return self._planes.numpy()
+        self._half.copy_(t)  # round to nearest even
+        t.copy_(self._half)  # exact: the stored values, back in float32
+        bits = self._half.numpy().view(np.uint16)  # OpenCV has no half type; a split moves bits only
+        cv2.split(bits, [plane.view(np.uint16) for plane in self._planes])
+        return self._planes
 
 
 def write_processed(
