@@ -3,6 +3,7 @@ directory's shards (a copy that shares them), then score the whole test split (m
 ceiling a perfect prediction reaches on the same images) and print the PSNR curve.
 
     python bench/cpu_long_run.py DEMO_WORK [--steps 20000] [--batch 2048] [--minutes 60] [--out DIR]
+                                 [--override '{model: {n_fine: 64}}']
 
 The copy (default DEMO_WORK-long) links the demo's capture pointer, split, calibration, bounds, reports and
 shards; only train/, eval/ and reports/{train,eval}.json are its own. `--minutes` stops training at a checkpoint
@@ -19,7 +20,9 @@ import sys
 import time
 from pathlib import Path
 
-from lightstage.training.config import load_config
+import yaml
+
+from lightstage.training.config import load_config, merge
 from lightstage.training.evaluate import run_eval
 from lightstage.training.train_stage import run_train
 from lightstage.workdir import WorkDir
@@ -49,15 +52,17 @@ def main() -> int:
     ap.add_argument("--minutes", type=float, default=60.0)
     ap.add_argument("--eval-every", type=int, default=2000)
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument(
+        "--override", default="{}", help="YAML mapping merged into the cpu config (after the flags)"
+    )
     args = ap.parse_args()
     if not (args.demo / "shards" / "manifest.json").is_file():
         print(f"{args.demo}: no shards (run `lightstage demo --work {args.demo}` first)", file=sys.stderr)
         return 2
     work = prepare(args.demo, args.out or args.demo.with_name(args.demo.name + "-long"))
-    cfg = load_config(
-        "cpu",
-        {"optim": {"steps": args.steps, "batch_rays": args.batch}, "eval": {"every": args.eval_every}},
-    )
+    flags = {"optim": {"steps": args.steps, "batch_rays": args.batch}, "eval": {"every": args.eval_every}}
+    cfg = load_config("cpu", merge(flags, yaml.safe_load(args.override) or {}))
+    print(f"config: {json.dumps(cfg.to_dict())}", flush=True)
     t0 = time.perf_counter()
     chunk = max(args.eval_every, 500)
     step = 0
