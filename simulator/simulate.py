@@ -27,7 +27,7 @@ from lightstage.capture.layout import (
     save_capture_info,
 )
 from lightstage.capture.presets import PAPER_RESOLUTION, make_stage
-from lightstage.capture.probe import save_probe_info
+from lightstage.capture.probe import ProbeInfo, save_probe_info
 from lightstage.capture.stage import Stage
 from lightstage.errors import LightstageError
 from lightstage.executor import Executor, local_executor
@@ -36,12 +36,14 @@ from lightstage.records.calibration import Calibration, ViewCalibration
 from lightstage.records.ground_truth import CLEAN_TEMPLATE, FOLDER, GroundTruth
 from lightstage.simulator.geometry import TrueGeometry, true_geometry
 from lightstage.simulator.probe import (
+    ProbeJob,
     ProbeSettings,
+    ProbeViewRecord,
     probe_ground_truth,
     probe_jobs,
     render_probe_view,
 )
-from lightstage.simulator.render import ViewJob, render_view
+from lightstage.simulator.render import ViewJob, ViewRecord, render_view
 from lightstage.simulator.scene import SimScene, default_scene, led_intensities
 from lightstage.simulator.shading import cast_view, render_hits
 
@@ -158,8 +160,8 @@ def simulate_capture(
     """Simulate a raw capture with ground truth into `out` (created; must be empty or absent); returns `out`.
 
     `probe`: also write the mirror-ball light-probe frames (probe/, see capture.probe) and
-    ground_truth/probe.json, after the capture frames. `realism`: "stage" or "clean" (default: the preset's;
-    see scene.default_scene)."""
+    ground_truth/probe.json (its views queued after the capture views, in the same pool). `realism`: "stage"
+    or "clean" (default: the preset's; see scene.default_scene)."""
     if preset not in SIM_PRESETS:
         raise LightstageError(f"unknown simulator preset {preset!r} (known: {', '.join(SIM_PRESETS)})")
     if not isinstance(seed, int) or seed < 0:
@@ -234,10 +236,19 @@ def simulate_capture(
         for gi in gsel
         for ci in csel
     ]
-    with local_executor(_pool_size(workers, len(jobs))) as executor:
-        records = _run_jobs(jobs, executor, progress)
-        if probe:  # the probe's views reuse the pool (spawning workers costs ~1 s)
-            _simulate_probe(out, stage, truth, scene, seed, preset, full, lsel, executor, progress)
+    settings = ProbeSettings()
+    probe_info, pjobs = (
+        _probe_jobs(out, stage, truth, scene, seed, preset, full, lsel, settings) if probe else (None, [])
+    )
+    # one map: the capture views, then the probe's (cheaper) views, so no worker idles at a barrier between
+    # the two kinds and the pool is spawned once
+    with local_executor(_pool_size(workers, len(jobs) + len(pjobs))) as executor:
+        results = _run_jobs(jobs + pjobs, executor, progress, render_job)
+    records = results[: len(jobs)]
+    if probe_info is not None:
+        save_probe_info(probe_info, out)
+        probe_truth = probe_ground_truth(truth, settings, list(probe_info.positions), results[len(jobs) :])
+        write_json_atomic(GroundTruth.of(out).probe, probe_truth)
     nuisances = {
         "bulbs_in_view": [
             {"group": r.group, "camera": r.camera, "light": lt, "pixels": n}
@@ -254,11 +265,16 @@ def simulate_capture(
     write_contact_sheet(out, stage, clean)
     if progress:
         n = len(jobs) * len(lsel)
+        if probe_info is not None:
+            print(
+                f"simulated {len(pjobs) * (len(lsel) + 1)} probe frames ({len(probe_info.positions)} positions x "
+                f"{len(stage.cameras)} cameras, {len(lsel)} lights + ambient)"
+            )
         print(f"simulated {n} frames ({len(jobs)} views) into {out} in {time.perf_counter() - start:.1f} s")
     return out
 
 
-def _simulate_probe(
+def _probe_jobs(
     out: Path,
     stage: Stage,
     truth: TrueGeometry,
@@ -267,14 +283,10 @@ def _simulate_probe(
     preset: str,
     full: Stage,
     lsel: list[int],
-    executor: Executor,
-    progress: bool,
-    settings: ProbeSettings | None = None,
-) -> None:
-    """The mirror-ball probe: probe/probe.yaml, its frames, ground_truth/probe.json."""
-    start = time.perf_counter()
-    settings = settings or ProbeSettings()
-    info, jobs = probe_jobs(
+    settings: ProbeSettings,
+) -> tuple[ProbeInfo, list[ProbeJob]]:
+    """The mirror-ball probe's probe.yaml info and view jobs (seed streams indexed in the full preset)."""
+    return probe_jobs(
         out,
         stage,
         truth,
@@ -286,17 +298,11 @@ def _simulate_probe(
         settings,
         attributes={"lightstage_simulator": f"{preset} seed {seed} probe"},
     )
-    records = _run_jobs(jobs, executor, progress, render_probe_view, "simulate probe")
-    save_probe_info(info, out)
-    write_json_atomic(
-        GroundTruth.of(out).probe, probe_ground_truth(truth, settings, list(info.positions), records)
-    )
-    if progress:
-        n = len(jobs) * (len(lsel) + 1)
-        print(
-            f"simulated {n} probe frames ({len(info.positions)} positions x {len(stage.cameras)} cameras, "
-            f"{len(lsel)} lights + ambient) in {time.perf_counter() - start:.1f} s"
-        )
+
+
+def render_job(job: ViewJob | ProbeJob) -> ViewRecord | ProbeViewRecord:
+    """Render one capture view (render.render_view) or probe view (probe.render_probe_view)."""
+    return render_probe_view(job) if isinstance(job, ProbeJob) else render_view(job)
 
 
 def _pool_size(workers: int | None, num_jobs: int) -> int:
