@@ -121,7 +121,8 @@ class BandDownscaler:
             and self.rgb.flags.c_contiguous
         ):
             raise LightstageError(f"output buffers do not fit a {W}x{H} frame downscaled {factor}x")
-        self._buf = torch.empty((min(band_rows, H), W, 3), dtype=torch.float32)
+        self._max_rows = min(band_rows, H)
+        self._buf = torch.empty((self._max_rows if factor > 1 else 0, W, 3), dtype=torch.float32)
         self._cut_bits = int(saturation_half(cutoff).view(np.int16))
         self._row = 0
         self.non_finite = self.negative = 0
@@ -133,12 +134,16 @@ class BandDownscaler:
 
         f, (W, H), y = self.factor, self.size, self._row
         n = band.shape[0]
-        if band.shape[1:] != (W, 3) or n % f or n > self._buf.shape[0] or y + n > H:
+        if band.shape[1:] != (W, 3) or n % f or n > self._max_rows or y + n > H:
             raise LightstageError(f"band of shape {band.shape} does not fit a {W}x{H} frame at row {y}")
-        buf = self._buf[:n]
-        buf.copy_(torch.from_numpy(band))
         rows = slice(y // f, (y + n) // f)
-        cv2.resize(buf.numpy(), (W // f, n // f), dst=self.rgb[rows], interpolation=cv2.INTER_AREA)
+        if f == 1:  # the identity (an SfM image at raw size): convert straight into the output
+            buf = torch.from_numpy(self.rgb[rows])
+            buf.copy_(torch.from_numpy(band))
+        else:
+            buf = self._buf[:n]
+            buf.copy_(torch.from_numpy(band))
+            cv2.resize(buf.numpy(), (W // f, n // f), dst=self.rgb[rows], interpolation=cv2.INTER_AREA)
         if band.dtype == np.float16:
             # for non-negative halfs the int16 view orders like the value: no float test needed unless
             # the band reaches the cutoff (NaN bit patterns also compare high; such frames are rejected later);

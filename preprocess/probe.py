@@ -115,22 +115,35 @@ def ball_outline(lum: np.ndarray) -> tuple[np.ndarray, tuple[float, float, float
     return uv, (float(centre[0]), float(centre[1]), radius)
 
 
+def highlight_window(
+    disc: tuple[float, float, float], shape: tuple[int, int], window_px: int = 4
+) -> tuple[int, int, int, int]:
+    """Rows r0:r1 and columns c0:c1 of an (H, W) frame that `ball_highlight` looks at: the disc and a margin."""
+    u0, v0, rad = disc
+    H, W = shape
+    m = int(np.ceil(rad)) + window_px + 2
+    return max(int(v0) - m, 0), min(int(v0) + m + 1, H), max(int(u0) - m, 0), min(int(u0) + m + 1, W)
+
+
 def ball_highlight(
     lum: np.ndarray,
     disc: tuple[float, float, float],
     saturation: float,
     min_snr: float = 20.0,
     window_px: int = 4,
+    origin: tuple[int, int] | None = None,
 ) -> tuple[float, float, float]:
     """The light's reflection on the ball: the background-subtracted intensity centroid (u, v) in a window
     around the brightest pixel on the disc, and its peak over the noise std. A LightstageError says why there
-    is none: too faint, clipped (the centroid of a clipped spot is not its centre), or a second spot."""
+    is none: too faint, clipped (the centroid of a clipped spot is not its centre), or a second spot.
+    `origin`: (row, column) of `lum` in the frame when `lum` is only the frame's `highlight_window`."""
     u0, v0, rad = disc
-    H, W = lum.shape
-    m = int(np.ceil(rad)) + window_px + 2
-    r0, r1 = max(int(v0) - m, 0), min(int(v0) + m + 1, H)
-    c0, c1 = max(int(u0) - m, 0), min(int(u0) + m + 1, W)
-    crop = lum[r0:r1, c0:c1].astype(np.float64)
+    if origin is None:
+        r0, r1, c0, c1 = highlight_window(disc, lum.shape, window_px)
+        crop = lum[r0:r1, c0:c1].astype(np.float64)
+    else:
+        (r0, c0), crop = origin, lum.astype(np.float64)
+        r1, c1 = r0 + crop.shape[0], c0 + crop.shape[1]
     rows, cols = np.mgrid[r0:r1, c0:c1]
     on_ball = (cols + 0.5 - u0) ** 2 + (rows + 0.5 - v0) ** 2 <= (rad + 1.0) ** 2
     bg = float(np.median(crop))
@@ -173,10 +186,19 @@ def _signature(paths: list[str]) -> list[list[float]]:
     return out
 
 
-def _read_lum(path: str, size: tuple[int, int], exposure_scale: float) -> np.ndarray:
+def _read_lum(
+    path: str, size: tuple[int, int], exposure_scale: float, window: tuple[int, int, int, int] | None = None
+) -> np.ndarray:
+    """Luminance of a raw frame, or of its rows r0:r1 and columns c0:c1 (`window`): only those are converted
+    to float32 (through PyTorch; numpy's half conversion cost more than the decode)."""
     from lightstage.frames import read_exr
+    from lightstage.records.processed import to_float
 
-    rgb = read_exr(path, size).astype(np.float32)
+    rgb = read_exr(path, size)
+    if window is not None:
+        r0, r1, c0, c1 = window
+        rgb = rgb[r0:r1, c0:c1]
+    rgb = to_float(rgb) if rgb.dtype == np.float16 else np.ascontiguousarray(rgb, np.float32)
     if exposure_scale != 1.0:
         rgb *= np.float32(exposure_scale)
     return _luminance(rgb)
@@ -195,14 +217,16 @@ def measure_probe_view(job: ProbeViewJob) -> ProbeViewRecord:
         step = max(1, int(np.ceil(len(outline) / MAX_OUTLINE_POINTS)))
         rec.outline = np.round(outline[::step], 4).tolist()
         rec.disc = [round(x, 3) for x in disc]
+        window = highlight_window(disc, (job.size[1], job.size[0]), job.window_px)
         for light, path in job.frames:
             try:
                 u, v, snr = ball_highlight(
-                    _read_lum(path, job.size, job.exposure_scale),
+                    _read_lum(path, job.size, job.exposure_scale, window),
                     disc,
                     job.saturation,
                     job.min_snr,
                     job.window_px,
+                    origin=(window[0], window[2]),
                 )
             except LightstageError as e:
                 rec.missing[str(light)] = str(e)

@@ -4,8 +4,9 @@ The stage driver; the tasks live in frame_task.py (chunks) and view_task.py (vie
 the report in report.py. Work is split per view into chunks of lights. A chunk task decodes each raw frame once, writes its 4x
 downscaled RGBS frame (atomically) and streams it into the chunk's partial statistics, which it saves
 (atomically) as a partial file. A view task merges the partials in a tree, segments, scores flares and
-writes the view's outputs; `view.json` is written last and marks the view finished. A final in-process step
-writes the tonemapped previews with one exposure for the whole capture, then `reports/preprocess.json`.
+writes the view's outputs; `view.json` is written last and marks the view finished. A final step picks one
+exposure for the whole capture and writes the tonemapped previews (per view, as executor tasks), then
+`reports/preprocess.json`.
 
 Resuming: finished views are skipped; in unfinished views, chunks with a partial are skipped and frames
 with a valid processed file are read back instead of decoded, so a killed run resumes with identical
@@ -125,7 +126,12 @@ def run_preprocess(
     add_group_flags(work, records, config)
     t_prev = time.perf_counter()
     exposure = write_previews(
-        work, [v for v in view_jobs if ViewId(v.group, v.camera) in records], records, config
+        work,
+        [v for v in view_jobs if ViewId(v.group, v.camera) in records],
+        records,
+        config,
+        executor,
+        progress,
     )
     report = build_report(
         work, capture, config, view_jobs, records, chunk_results, errors, finished_before, exposure
