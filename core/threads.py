@@ -6,6 +6,9 @@ OMP_NUM_THREADS does not limit OpenEXR, OpenImageIO or OpenCV, so each is set he
 
 from __future__ import annotations
 
+import os
+import sys
+
 
 def set_library_threads(n: int) -> None:
     """Give OpenEXR, OpenImageIO, OpenCV and PyTorch `n` threads each in this process."""
@@ -18,9 +21,10 @@ def set_library_threads(n: int) -> None:
     oiio.attribute("threads", n)
     oiio.attribute("exr_threads", n)
     cv2.setNumThreads(n)
-    try:
-        import torch
-
+    torch = sys.modules.get("torch")
+    if torch is not None:
         torch.set_num_threads(n)
-    except ImportError:  # torch is a dependency, but thread control must not require it
-        pass
+    else:
+        # Importing torch only to set its threads cost 1.7-2.4 CPU-s in every pool worker (the simulator and
+        # most preprocess tasks never use it); torch reads these at import, should a task import it later.
+        os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = str(n)
