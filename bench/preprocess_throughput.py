@@ -176,16 +176,15 @@ class ConcurrentFloor:
 
 
 def breakdown(paths: list[Path], tmp: Path) -> dict[str, dict[str, float]]:
-    """Mean wall and CPU seconds per step of the per-frame work, in this process (one library thread); the
-    write is timed for every lossless compression."""
+    """Mean wall and CPU seconds per step of the per-frame work, in this process (one library thread), into the
+    chunk task's reused buffers (frame_task.FrameBuffers); the write is timed for every lossless compression."""
     from lightstage.exr_header import prefetch_file
     from lightstage.frames import COMPRESSIONS
-    from lightstage.preprocess.downscale import decode_downscale, decode_raw, downscale
+    from lightstage.preprocess.downscale import decode_downscale_factors, decode_raw, downscale
     from lightstage.preprocess.flare import lit_threshold, thumbnail
-    from lightstage.preprocess.frame_task import check_finite
+    from lightstage.preprocess.frame_task import FrameBuffers, check_finite
     from lightstage.preprocess.stats import StatsAccumulator
-    from lightstage.records.processed import HalfRounder, write_processed
-    from lightstage.tonemap import luminance
+    from lightstage.records.processed import write_processed
 
     wall: dict[str, list[float]] = {}
     cpu: dict[str, list[float]] = {}
@@ -197,18 +196,21 @@ def breakdown(paths: list[Path], tmp: Path) -> dict[str, dict[str, float]]:
         cpu.setdefault(name, []).append(time.process_time() - c)
         return out
 
-    acc = StatsAccumulator(RES[1] // 4, RES[0] // 4)
-    rounder = HalfRounder(RES[1] // 4, RES[0] // 4)
+    acc = StatsAccumulator(RES[1] // 4, RES[0] // 4, 4.4019)  # with the brightness ladder, as the stage
+    bufs = FrameBuffers(RES[1] // 4, RES[0] // 4)
+    out = (bufs.rgb, bufs.saturated)
     for i, p in enumerate(paths):
-        timed("decode+downscale_bands", lambda p=p: decode_downscale(p, RES, 4.4019, 32))  # decoder: bands
+        timed(  # decoder: bands
+            "decode+downscale_bands", lambda p=p: decode_downscale_factors(p, RES, 4.4019, 32, (4,), out)
+        )
         timed("read_ahead", lambda p=p: prefetch_file(p, 120.0))  # the read timeout's prefetch
         px = timed("decode", lambda p=p: decode_raw(p, RES))  # decoder: openexr ...
-        small = timed("downscale", lambda px=px: downscale(px, 4.4019, 32))  # ... then the banded downscale
+        small = timed("downscale", lambda px=px: downscale(px, 4.4019, 32, out=out))  # ... then the downscale
         del px
 
         def check(small=small, p=p):  # noqa: ANN001, ANN202
             check_finite(small.rgb, str(p))
-            return rounder(small.rgb)  # half planes; small.rgb is rounded in place
+            return bufs.rounder(small.rgb)  # half planes; small.rgb is rounded in place
 
         planes = timed("half+check", check)
         for comp in COMPRESSIONS:
@@ -219,8 +221,8 @@ def breakdown(paths: list[Path], tmp: Path) -> dict[str, dict[str, float]]:
 
         def stats(i=i, small=small):  # noqa: ANN001, ANN202
             rgb = small.rgb
-            lum = luminance(rgb)
-            th = thumbnail(lum, small.saturated, 8)
+            lum = bufs.luminance(rgb)
+            th = thumbnail(lum, small.saturated, 8, bufs.scratch)
             acc.add(i, rgb, small.saturated, lit_threshold(th, 4.4019), lum)
 
         timed("statistics", stats)
@@ -238,28 +240,28 @@ def interleaved(paths: list[Path], tmp: Path, rounds: int) -> dict:
     all three see the same load; CPU seconds (median) and the per-frame ratio to the floor."""
     from lightstage.exr_header import prefetch_file
     from lightstage.frames import pixel_verdict
-    from lightstage.preprocess.downscale import decode_downscale, decode_raw, downscale
+    from lightstage.preprocess.downscale import decode_downscale_factors, decode_raw, downscale
     from lightstage.preprocess.flare import lit_threshold, thumbnail
-    from lightstage.preprocess.frame_task import check_finite
+    from lightstage.preprocess.frame_task import FrameBuffers, check_finite
     from lightstage.preprocess.stats import StatsAccumulator
-    from lightstage.records.processed import HalfRounder, write_processed
-    from lightstage.tonemap import luminance
+    from lightstage.records.processed import write_processed
 
     h, w = RES[1] // 4, RES[0] // 4
-    acc, rounder = StatsAccumulator(h, w, 4.4019), HalfRounder(h, w)
+    acc, bufs = StatsAccumulator(h, w, 4.4019), FrameBuffers(h, w)
+    out = (bufs.rgb, bufs.saturated)
 
     def frame_path(p: Path, i: int, decoder: str) -> None:
         prefetch_file(p, 120.0)
         small = (
-            decode_downscale(p, RES, 4.4019, 32)
+            decode_downscale_factors(p, RES, 4.4019, 32, (4,), out)[0]
             if decoder == "bands"
-            else downscale(decode_raw(p, RES), 4.4019, 32)
+            else downscale(decode_raw(p, RES), 4.4019, 32, out=out)
         )
         assert pixel_verdict(small.non_finite, small.negative).ok
         check_finite(small.rgb, str(p))
-        write_processed(tmp / "ab.exr", rounder(small.rgb), small.saturated, "none")
-        lum = luminance(small.rgb)
-        th = thumbnail(lum, small.saturated, 8)
+        write_processed(tmp / "ab.exr", bufs.rounder(small.rgb), small.saturated, "none")
+        lum = bufs.luminance(small.rgb)
+        th = thumbnail(lum, small.saturated, 8, bufs.scratch)
         acc.add(i, small.rgb, small.saturated, lit_threshold(th, 4.4019, 4.0, 2**-13), lum)
 
     def floor(p: Path) -> None:

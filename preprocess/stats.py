@@ -104,8 +104,10 @@ class ViewStats:
         return (std / np.maximum(self.mean @ np.array(LUMA, np.float32), 1e-12)).astype(np.float32)
 
     # ---- merge ---------------------------------------------------------------------------------------
-    def merge(self, other: ViewStats) -> ViewStats:
-        """Statistics of the union of two disjoint light sets (Chan et al. pairwise update)."""
+    def merge(self, other: ViewStats, in_place: bool = False) -> ViewStats:
+        """Statistics of the union of two disjoint light sets (Chan et al. pairwise update). `in_place`: the
+        result is written over this object's arrays (the same values, in the same order of operations), so
+        merging holds no third set of images: for `merge_tree` over parts nobody else holds."""
         if self.mean.shape != other.mean.shape:
             raise LightstageError(
                 f"cannot merge statistics of shapes {self.mean.shape} and {other.mean.shape}"
@@ -119,19 +121,33 @@ class ViewStats:
             return other
         na, nb = self.count, other.count
         n = na + nb
-        delta = other.mean - self.mean
-        mean = self.mean + delta * np.float32(nb / n)
-        m2 = self.m2 + other.m2 + delta * delta * np.float32(na * nb / n)
+        if not in_place:
+            delta = other.mean - self.mean
+            mean = self.mean + delta * np.float32(nb / n)
+            m2 = self.m2 + other.m2 + delta * delta * np.float32(na * nb / n)
+            mean, m2 = mean.astype(np.float32), m2.astype(np.float32)
+        else:
+            delta = np.subtract(other.mean, self.mean)
+            m2 = np.add(self.m2, other.m2, out=self.m2)
+            square = np.multiply(delta, delta)
+            m2 += np.multiply(square, np.float32(na * nb / n), out=square)
+            del square
+            mean = np.add(self.mean, np.multiply(delta, np.float32(nb / n), out=delta), out=self.mean)
+
+        def add_counts(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+            out = a if in_place and a.dtype == np.uint16 else None
+            return np.add(a, b, out=out, dtype=np.uint16)
+
         return ViewStats(
             count=n,
             lights=tuple(sorted(self.lights + other.lights)),
-            mean=mean.astype(np.float32),
-            m2=m2.astype(np.float32),
-            peak=np.maximum(self.peak, other.peak),
-            saturated=np.add(self.saturated, other.saturated, dtype=np.uint16),
-            lit=np.add(self.lit, other.lit, dtype=np.uint16),
-            lum_sum=self.lum_sum + other.lum_sum,
-            ladder=np.add(self.ladder, other.ladder, dtype=np.uint16)
+            mean=mean,
+            m2=m2,
+            peak=np.maximum(self.peak, other.peak, out=self.peak if in_place else None),
+            saturated=add_counts(self.saturated, other.saturated),
+            lit=add_counts(self.lit, other.lit),
+            lum_sum=np.add(self.lum_sum, other.lum_sum, out=self.lum_sum if in_place else None),
+            ladder=add_counts(self.ladder, other.ladder)
             if len(self.ladder) == len(other.ladder)
             else _no_ladder(self),
         )
@@ -207,14 +223,16 @@ def empty_stats(height: int, width: int) -> ViewStats:
     )
 
 
-def merge_tree(parts: Iterable[ViewStats]) -> ViewStats | None:
-    """Merge statistics pairwise in a balanced tree, streaming: at most log2(k) + 1 partials are held."""
+def merge_tree(parts: Iterable[ViewStats], consume: bool = False) -> ViewStats | None:
+    """Merge statistics pairwise in a balanced tree, streaming: at most log2(k) + 1 partials are held.
+    `consume`: the parts are nobody else's (e.g. loaded from files), so merges write over them (`merge`'s
+    `in_place`): the same result with ~190 MB less at 2048x1366 (the view task's peak at 331 lights)."""
     stack: list[tuple[int, ViewStats]] = []  # (level, stats) like a binary counter
     for part in parts:
         level, cur = 0, part
         while stack and stack[-1][0] == level:
             _, prev = stack.pop()
-            cur = prev.merge(cur)
+            cur = prev.merge(cur, in_place=consume)
             level += 1
         stack.append((level, cur))
     if not stack:
@@ -222,7 +240,7 @@ def merge_tree(parts: Iterable[ViewStats]) -> ViewStats | None:
     _, out = stack.pop()
     while stack:
         _, prev = stack.pop()
-        out = prev.merge(out)
+        out = prev.merge(out, in_place=consume)
     return out
 
 

@@ -67,7 +67,7 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
             s.extras = {}
             yield s
 
-    stats = merge_tree(parts()) or empty_stats(h, w)
+    stats = merge_tree(parts(), consume=True) or empty_stats(h, w)  # parts loaded here: merged in place
     if stats.count == 0:
         stats = empty_stats(h, w)
     if stats.mean.shape[:2] != (h, w):

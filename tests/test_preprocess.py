@@ -241,6 +241,26 @@ def test_ladder_counts_equal_direct_at_level_edges_and_past_255_frames(tmp_path:
             acc.add(0, frames[0], sats[0], taus[0])
 
 
+def test_merge_tree_in_place_equals_merge_tree_bit_for_bit() -> None:
+    """The view task merges the partials it loaded in place (consume=True): the same bits as fresh arrays."""
+    rng = np.random.default_rng(7)
+    h, w, k = 9, 13, 11
+    frames = [_frame(rng, h, w).astype(np.float32) for _ in range(k)]
+    sats = [rng.random((h, w)) < 0.05 for _ in range(k)]
+
+    def parts():
+        for i in range(0, k, 2):
+            acc = StatsAccumulator(h, w, CUTOFF)
+            for j in range(i, min(i + 2, k)):
+                acc.add(j, frames[j], sats[j], 0.1)
+            yield acc.finish(reuse=True)
+
+    fresh, in_place = merge_tree(parts()), merge_tree(parts(), consume=True)
+    for key, value in fresh.arrays().items():
+        assert in_place.arrays()[key].dtype == value.dtype, key
+        assert in_place.arrays()[key].tobytes() == value.tobytes(), key
+
+
 def test_downscale_into_reused_buffers_equals_fresh() -> None:
     """A chunk task decodes each frame into the same arrays: flags of the previous frame must not survive."""
     rng = np.random.default_rng(6)
