@@ -166,3 +166,22 @@ def test_occupancy_updates_only_its_region():
     model.occupancy.update(lambda x: torch.full((len(x),), 1e6), seed=1)
     assert model.occupancy.occupied_fraction() == float(model.occupancy.region.float().mean())
     assert not model.occupancy.occupied(torch.tensor([[0.4, 0.4, 0.4]])).any()
+
+
+def test_hull_prior_equals_a_point_by_point_reference():
+    """The separable gather marks the same cells as testing every probe point against the dilated hull."""
+    gen = torch.Generator().manual_seed(0)
+    hull = torch.rand(7, 5, 9, generator=gen) > 0.8
+    lo, hi = torch.tensor([-0.6, -0.3, -0.9]), torch.tensor([0.5, 0.4, 0.7])
+    res, samples = 10, 3
+    dil = torch.nn.functional.max_pool3d(hull.float()[None, None], 3, stride=1, padding=1)[0, 0] > 0
+    n = torch.tensor(hull.shape, dtype=torch.float32)
+    want = torch.zeros((res,) * 3, dtype=torch.bool)
+    sub = (torch.arange(samples) + 0.5) / samples
+    for c in torch.cartesian_prod(*(torch.arange(res),) * 3):
+        for s in torch.cartesian_prod(sub, sub, sub):
+            rel = ((c + s) / res * 2 - 1 - lo) / (hi - lo) * n
+            if ((rel >= 0) & (rel < n)).all() and dil[tuple(rel.long().tolist())]:
+                want[tuple(c.tolist())] = True
+                break
+    assert torch.equal(hull_prior(hull, lo, hi, res, samples), want)

@@ -105,10 +105,15 @@ def hull_prior(
     axis = (torch.arange(resolution, dtype=torch.float32)[:, None] + sub[None]).reshape(
         -1
     ) / resolution * 2 - 1
-    pts = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
-    rel = (pts - box_min) / (box_max - box_min) * n
-    inside = ((rel >= 0) & (rel < n)).all(-1)
-    ijk = rel.clamp(min=0).long().minimum((n - 1).long())
-    hit = inside & hull[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+    # The probe points are a tensor product of per-axis coordinates, so each axis is mapped to hull voxel indices
+    # on its own and the hull is gathered once over their outer product (56 MB of bools at 128^3 x 3^3; the
+    # (N, 3) point list it replaces took GBs).
+    idx, ok = [], []
+    for a in range(3):
+        rel = (axis - box_min[a]) / (box_max[a] - box_min[a]) * n[a]
+        ok.append((rel >= 0) & (rel < n[a]))
+        idx.append(rel.clamp(min=0).long().clamp(max=int(n[a]) - 1))
+    hit = hull[idx[0][:, None, None], idx[1][None, :, None], idx[2][None, None, :]]
+    hit &= ok[0][:, None, None] & ok[1][None, :, None] & ok[2][None, None, :]
     hit = hit.reshape(resolution, samples, resolution, samples, resolution, samples)
     return hit.any(5).any(3).any(1)
