@@ -11,7 +11,6 @@ import numpy as np
 
 from lightstage.atomic import write_json_atomic
 from lightstage.capture.layout import Capture
-from lightstage.errors import LightstageError
 from lightstage.executor import Executor, LoopExecutor
 from lightstage.ids import FrameId, ViewId
 from lightstage.preprocess.config import PreprocessConfig
@@ -142,7 +141,7 @@ def write_previews(
 
 def write_view_previews(job: PreviewJob) -> None:
     """Executor task: a view's four preview PNGs from its mean image, mask and SfM image (`write_png`)."""
-    from lightstage.frames import read_exr
+    from lightstage.frames import read_exr, write_png
     from lightstage.preprocess.jobs import in_dask_worker
     from lightstage.preprocess.segment import overlay, zone_map
     from lightstage.preprocess.sfm_image import upsample_mask
@@ -167,28 +166,6 @@ def write_view_previews(job: PreviewJob) -> None:
     sfm = linear(work.sfm_hdr(view))
     write_png(outputs[2], tonemap_u8(sfm, job.sfm_exposure))
     write_png(outputs[3], upsample_mask(mask, (sfm.shape[1], sfm.shape[0])))
-
-
-def write_png(path: Path, pixels: np.ndarray) -> None:
-    """Write an 8-bit grey (h, w) or RGB (h, w, 3) image as PNG through OpenCV's encoder, atomically. The
-    pixels read back exactly as from `lightstage.frames.write_image`; only the compression differs: zlib level 1
-    with run-length matching only and the "up" row filter. The demo's 768x512 SfM image takes 17 ms and
-    468 kB so, against 71 ms and 509 kB through OpenImageIO at level 3; a mask 0.8 ms (docs/benchmarks.md)."""
-    import cv2
-
-    from lightstage.atomic import write_bytes_atomic
-
-    if pixels.dtype != np.uint8 or pixels.ndim not in (2, 3) or (pixels.ndim == 3 and pixels.shape[2] != 3):
-        raise LightstageError(f"{path}: expected 8-bit grey or RGB pixels, got {pixels.dtype} {pixels.shape}")
-    params = [
-        *(cv2.IMWRITE_PNG_COMPRESSION, 1),
-        *(cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE),
-        *(cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_UP),
-    ]
-    ok, data = cv2.imencode(".png", pixels[..., ::-1] if pixels.ndim == 3 else pixels, params)
-    if not ok:
-        raise LightstageError(f"{path}: cannot encode PNG")
-    write_bytes_atomic(path, data.tobytes())
 
 
 def build_report(
