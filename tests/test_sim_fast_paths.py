@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from lightstage.records.processed import to_half
 from lightstage.simulator import render
-from lightstage.simulator.render import add_noise_and_clip, to_half
+from lightstage.simulator.render import add_noise_and_clip
 from lightstage.simulator.scene import default_scene
 from lightstage.simulator.shading import _union_normal, ellipsoid_normal, scatter_rows
 

@@ -27,10 +27,16 @@ FLAGS_COMPRESSION = "rle"
 
 
 def to_half(x: np.ndarray) -> np.ndarray:
-    """float32 -> float16 (round to nearest even) through PyTorch's vectorised conversion."""
-    import torch
+    """float32 -> float16 with the bits of `x.astype(np.float16)` (round to nearest even), through OpenCV's
+    vectorised (F16C) conversion: numpy converts element by element, ~10x slower (9 ms a 768x512 RGB frame,
+    a third of the noise step). A product by 1.0 is exact; the array is passed as one 2-D channel (a scalar
+    applies to channel 0 only). Other dtypes go through numpy (float64 via float32 would round twice)."""
+    import cv2
 
-    return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).half().numpy()
+    if x.dtype != np.float32 or x.size == 0:
+        return x.astype(np.float16)
+    flat = np.ascontiguousarray(x).reshape(x.shape[0] if x.ndim > 1 else 1, -1)
+    return cv2.multiply(flat, 1.0, dtype=cv2.CV_16F).reshape(x.shape)
 
 
 def to_float(x: np.ndarray) -> np.ndarray:
