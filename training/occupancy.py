@@ -55,13 +55,12 @@ class OccupancyGrid(nn.Module):
         r = self.resolution
         device = self.grid.device
         gen = torch.Generator(device="cpu").manual_seed(int(seed))
-        ijk = torch.stack(torch.meshgrid(*(torch.arange(r),) * 3, indexing="ij"), -1).reshape(-1, 3)
+        cells = self.region.reshape(-1).nonzero(as_tuple=True)[0].cpu()  # random points for these cells only
+        ijk = torch.stack([cells // (r * r), cells // r % r, cells % r], -1)
         pts = ((ijk + torch.rand(ijk.shape, generator=gen)) / r * 2.0 - 1.0).to(device)
-        cells = self.region.reshape(-1).nonzero(as_tuple=True)[0]
-        pts = pts[cells]
         dens = torch.zeros(r**3, device=device)
         if len(cells):
-            dens[cells] = torch.cat(
+            dens[cells.to(device)] = torch.cat(
                 [density_fn(pts[i : i + chunk]).float() for i in range(0, len(pts), chunk)]
             )
         self.grid.copy_(torch.maximum(self.grid * self.decay, dens.reshape(r, r, r)))
