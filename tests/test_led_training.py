@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from support.training import train_and_eval
 
 import lightstage.simulator.simulate as sim
 from lightstage.capture.stage import load_stage
@@ -38,20 +39,10 @@ def _unequal_led_capture(root: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     return sim.simulate_capture(root, preset="tiny", seed=0, workers=1, progress=False, probe=False)
 
 
-def _train_and_eval(capture: Path, root: Path) -> dict:
-    """The real stages, as the demo-model test runs them (one helper for both)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location(
-        "test_demo_model", Path(__file__).with_name("test_demo_model.py")
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.train_and_eval(capture, root)
-
-
 @pytest.mark.slow
-def test_unequal_leds_train_and_evaluate_like_equal_leds(tiny_capture, tmp_path, monkeypatch):
+def test_unequal_leds_train_and_evaluate_like_equal_leds(
+    tiny_capture, tiny_model_eval, tmp_path, monkeypatch
+):
     t0 = time.perf_counter()
     equal = tiny_capture  # tiny, seed 0, clean realism: equal white LEDs
     assert load_stage(equal / "stage.yaml").equal_lights
@@ -61,9 +52,9 @@ def test_unequal_leds_train_and_evaluate_like_equal_leds(tiny_capture, tmp_path,
     assert gains.max() / gains.min() > 1.5, gains
     assert np.abs(np.log(gains[:, 0] / gains[:, 2])).max() > 0.1, gains
 
-    eq_mean = _train_and_eval(equal, tmp_path / "w_eq")
-    led_mean = _train_and_eval(leds, tmp_path / "w_led")
-    w_eq, w_led = WorkDir.at(tmp_path / "w_eq"), WorkDir.at(tmp_path / "w_led")
+    eq_root, eq_mean = tiny_model_eval  # the same stages on `equal` (support.training.train_and_eval)
+    led_mean = train_and_eval(leds, tmp_path / "w_led")
+    w_eq, w_led = WorkDir.at(eq_root), WorkDir.at(tmp_path / "w_led")
 
     # (1) processed frames agree: the intensities were divided out. Compared over the true object mask, per
     # light and channel: the ratio of the object's total (the noise averages out over the object's pixels; what remains

@@ -27,6 +27,34 @@ def micro_config(steps: int, batch: int = 64, **extra) -> TrainConfig:
     return load_config("tiny", over)
 
 
+def train_and_eval(capture: Path, root: Path) -> dict:
+    """The real stages on a simulated capture: preprocess, true calibration, split (every non-test light trains),
+    shard, 300 steps of the demo's `cpu` config, eval; returns the eval means (WORK = root)."""
+    import shutil
+
+    from lightstage.dataset.shard_config import ShardConfig
+    from lightstage.dataset.shards import run_shard
+    from lightstage.dataset.split import SplitConfig, run_split
+    from lightstage.preprocess.config import PreprocessConfig
+    from lightstage.preprocess.run import run_preprocess
+    from lightstage.training.evaluate import run_eval
+    from lightstage.training.train_stage import run_train
+    from lightstage.workdir import WorkDir
+
+    work = WorkDir.at(root)
+    work.root.mkdir()
+    work.capture_pointer.write_text(str(capture))
+    run_preprocess(work, PreprocessConfig(), progress=False)
+    work.calibration.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copy(capture / "ground_truth" / "geometry.json", work.calibration)
+    split = SplitConfig.from_dict({"protocol": {"base": "paper", "lights": {"train": "rest"}}})
+    run_split(work, split, progress=False)
+    run_shard(work, ShardConfig(workers=1), progress=False)
+    cfg = load_config("cpu", {"optim": {"steps": 300, "batch_rays": 512}, "eval": {"every": 0}})
+    run_train(work, cfg, progress=False, device="cpu")
+    return run_eval(work, progress=False, device="cpu")["mean"]
+
+
 def ddp_worker(rank: int, world: int, init_file: str, out: str, steps: int = 3) -> None:
     """One DDP rank (gloo): train the micro config on the synthetic sphere, save this rank's parameters."""
     torch.set_num_threads(1)
