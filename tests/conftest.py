@@ -31,16 +31,6 @@ def tiny_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return simulate_capture(tmp_path_factory.mktemp("sim") / "tiny", preset="tiny", seed=0, progress=False)
 
 
-@pytest.fixture(scope="session")
-def tiny_model_eval(tiny_capture: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
-    """The demo's `cpu` model trained for 300 steps on `tiny_capture` through the real stages (made once per
-    session, support.training.train_and_eval): (its work directory, the eval means). Treat it as read-only."""
-    from support.training import train_and_eval
-
-    root = tmp_path_factory.mktemp("tiny_model") / "work"
-    return root, train_and_eval(tiny_capture, root)
-
-
 class ProcessKiller:
     """SIGKILLs process `pid` from a background thread once `ready()` holds (or at the timeout): fault
     injection for runs on a real cluster. Use as a context manager around the run; `killed` says it happened."""
