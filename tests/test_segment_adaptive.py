@@ -257,3 +257,45 @@ def test_lens_flare_takes_the_leds_colour_per_channel() -> None:
     s_tinted = add_flare(tinted, scene, cam, p, 6.0 * gain)
     assert s_white > 0 and s_tinted == pytest.approx(s_white)  # same mean intensity, same recorded strength
     np.testing.assert_allclose(tinted / gain, white, rtol=1e-5, atol=1e-9)
+
+
+def _brightness_quantile_whole_stack(ladder: np.ndarray, unsaturated: np.ndarray, q: float) -> np.ndarray:
+    """The brightness quantile computed on the whole (K, h, w) ladder at once (the formula before the
+    per-level loop), as the reference for `ViewStats.brightness_quantile`."""
+    from lightstage.preprocess.stats import LADDER_STOPS
+
+    k = len(ladder)
+    n = np.maximum(unsaturated, 1).astype(np.float32)
+    frac = ladder.astype(np.float32) / n[None]
+    stops = np.asarray(LADDER_STOPS, np.float32)
+    above = frac >= np.float32(q)
+    first = np.where(above.any(axis=0), above.argmax(axis=0), k)
+    out = np.full(frac.shape[1:], -(stops[-1] + 1.0), np.float32)
+    out[first == 0] = -stops[0]
+    mid = (first > 0) & (first < k)
+    j = first[mid]
+    r, c = np.nonzero(mid)
+    lo, hi = frac[j - 1, r, c], frac[j, r, c]
+    t = (np.float32(q) - lo) / np.maximum(hi - lo, 1e-6)
+    out[mid] = -(stops[j - 1] + t * (stops[j] - stops[j - 1]))
+    return out
+
+
+@pytest.mark.parametrize("q", [0.1, 0.25, 0.5, 0.9])
+def test_brightness_quantile_per_level_equals_the_whole_stack(q: float) -> None:
+    """The per-level brightness quantile gives the same bits as the whole-stack formula, including pixels that
+    reach no level, reach the first, or have no unsaturated frame."""
+    rng = np.random.default_rng(1)
+    frames, (h, w) = 32, (61, 83)
+    steps = rng.integers(0, 4, (16, h, w))
+    ladder = np.minimum(np.cumsum(steps, axis=0), frames).astype(np.uint16)  # counts rise with the level
+    ladder[:, :4] = 0  # rows that reach no level
+    stats = ViewStats.__new__(ViewStats)
+    stats.ladder = ladder
+    stats.count = frames
+    stats.saturated = rng.integers(0, frames + 1, (h, w)).astype(np.uint16)
+    got = stats.brightness_quantile(q)
+    want = _brightness_quantile_whole_stack(ladder, stats.unsaturated, q)
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got.view(np.uint32), want.view(np.uint32))
+    assert (got == -1.0).any() and (got == -17.0).any()  # both ends of the ladder occur
