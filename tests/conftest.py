@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -14,6 +15,26 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+# Modules whose fixtures take minutes: collected first, so on the suite's 2 processes (pytest-xdist, whole modules
+# per process in collection order, `addopts` in pyproject.toml) they start at once and the rest of the suite runs
+# beside them (the small-SfM fixture is the suite's critical path).
+SLOW_MODULES_FIRST = ("test_calibration_run.py",)
+
+# One library thread per test process when the suite runs on several (pytest-xdist): two processes of two OpenMP
+# threads each on 2 cores make every parallel region wait for a descheduled thread (a 1024-ray training step took
+# 2.6-3.6 s instead of 0.24 s, docs/benchmarks.md). Set before torch is imported, in the environment too, so
+# in-process runs and the subprocesses a test starts use the same thread count.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[_var] = "1"
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(1)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    items.sort(key=lambda item: item.path.name not in SLOW_MODULES_FIRST)  # stable: the rest keep their order
 
 
 @pytest.fixture(scope="session")

@@ -72,7 +72,6 @@ def test_ddp_gloo_two_processes_keep_parameters_identical(tmp_path):
 def test_tiny_synthetic_problem_learns_and_beats_constant_baseline(tmp_path):
     from lightstage.training.model import RelightModel
 
-    torch.set_num_threads(2)
     cfg = load_config("tiny", {"optim": {"steps": 250, "batch_rays": 256}, "log_every": 10})
     src = SyntheticSphere(batch_size=256)
     held_out = src.batch(10_000)
