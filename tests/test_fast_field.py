@@ -64,7 +64,7 @@ def test_transfer_skipped_only_below_min_weight():
     cfg = load_config("cpu").model
     model = RelightModel(cfg, [0.0, 0.0, 0.0], 1.0)
     with torch.no_grad():  # a dense blob so weights vary along rays
-        model.fine.geo[-1].bias[0] = 3.0
+        model.fine.geo[-1].bias[0] = 5.0  # opaque enough that the last samples weigh < min_weight
     o, d, light = _rays()
     full = RelightModel(load_config("cpu", {"model": {"min_weight": 0.0}}).model, [0.0, 0.0, 0.0], 1.0)
     full.load_state_dict(model.state_dict())

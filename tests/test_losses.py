@@ -3,10 +3,12 @@ targets; the mask loss penalises background densities only."""
 
 from __future__ import annotations
 
+import pytest
 import torch
 
+from lightstage.config import ConfigError
 from lightstage.training.config import LossConfig
-from lightstage.training.losses import mask_loss, total_loss, weighted_l2
+from lightstage.training.losses import mask_loss, measured_epsilon, total_loss, weighted_l2
 
 
 def test_weighted_l2_formula_and_stop_gradient():
@@ -60,3 +62,14 @@ def test_mask_loss_and_total():
     )
     torch.testing.assert_close(total, expect)
     assert set(parts) == {"rgb_fine", "rgb_coarse", "mask"}
+
+
+def test_epsilon_measured_from_the_data_level():
+    fixed = LossConfig(epsilon=1e-3)
+    assert measured_epsilon(fixed, exposure=2.5) is fixed  # no epsilon_of_level: the fixed epsilon stays
+    rel = LossConfig(epsilon=1e-3, epsilon_of_level=0.03)
+    # the level is what the exposure maps to 1: a capture 10x brighter gets a 10x larger epsilon
+    assert measured_epsilon(rel, exposure=2.5).epsilon == pytest.approx(0.03 / 2.5)
+    assert measured_epsilon(rel, exposure=0.25).epsilon == pytest.approx(0.03 / 0.25)
+    with pytest.raises(ConfigError):
+        LossConfig(epsilon_of_level=0.0)

@@ -117,11 +117,19 @@ class LossConfig:
     rgb_fine: float = 1.0
     rgb_coarse: float = 1.0
     epsilon: float = 1e-3  # assumes linear HDR with object pixels ~0.05-1 (the preprocess scale)
+    # When set, epsilon is measured instead: this fraction of the training data's level (the foreground
+    # luminance percentile that the exposure maps to 1, i.e. 1 / exposure), so the loss weighs dark pixels
+    # alike whatever the capture's absolute scale (`epsilon` is then unused).
+    epsilon_of_level: float | None = None
     mask: float = 1e-4
     saturated_one_sided: bool = True
 
     def __post_init__(self) -> None:
         require(self.epsilon > 0, "epsilon", f"must be > 0, got {self.epsilon:g}")
+        if self.epsilon_of_level is not None:
+            require(
+                self.epsilon_of_level > 0, "epsilon_of_level", f"must be > 0, got {self.epsilon_of_level:g}"
+            )
 
 
 @dataclass

@@ -3,15 +3,26 @@ on the densities of samples along background rays.
 
 The weighted L2 ((y_hat - y) / (sg(y_hat) + eps))^2 approximates an L2 on log(y + eps), so eps sets the darkest
 level that still counts: eps = 1e-3 assumes linear HDR where object pixels are ~0.05-1 (the preprocess scale,
-saturation at 4.4); background targets are 0, for which the loss is ~1 as soon as y_hat >> eps.
+saturation at 4.4); background targets are 0, for which the loss is ~1 as soon as y_hat >> eps. With
+`loss.epsilon_of_level` eps is measured instead: a fraction of the training data's level (1 / exposure).
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import torch
 
 from lightstage.training.config import LossConfig
 from lightstage.workdir import ZONE_BACKGROUND
+
+
+def measured_epsilon(cfg: LossConfig, exposure: float) -> LossConfig:
+    """`cfg` with its epsilon measured from the data when `epsilon_of_level` is set: that fraction of the
+    level the exposure maps to 1 (1 / exposure), so the darkest level that counts follows the capture's scale."""
+    if cfg.epsilon_of_level is None:
+        return cfg
+    return dataclasses.replace(cfg, epsilon=cfg.epsilon_of_level / exposure)
 
 
 def weighted_l2(

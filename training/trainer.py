@@ -34,7 +34,7 @@ from lightstage.training.checkpoint import (
 from lightstage.training.config import OptimConfig, TrainConfig
 from lightstage.training.inputs import BatchSource
 from lightstage.training.light_model import light_frame
-from lightstage.training.losses import total_loss
+from lightstage.training.losses import measured_epsilon, total_loss
 from lightstage.training.model import RelightModel
 from lightstage.workdir import ZONE_FOREGROUND
 
@@ -164,6 +164,7 @@ def fit(
         train_seconds = float(ck.get("train_seconds", 0.0))
     if stats is None:
         stats = compute_stats(source, cfg.eval.stats_batches, cfg.eval.exposure_percentile)
+    loss_cfg = measured_epsilon(cfg.loss, stats.exposure)
     if cfg.model.light == "point" and not bool(torch.isfinite(model.light_radius)):
         model.set_light_frame(*measure_light_frame(source, cfg.eval.stats_batches))
 
@@ -191,7 +192,7 @@ def fit(
         model.update_occupancy(step, cfg.seed)
         with autocast_context(device, ocfg.precision):
             out = net(batch["origins"], batch["directions"], batch["light_directions"], randomized=True)
-        loss, parts = total_loss(out, batch, cfg.loss)
+        loss, parts = total_loss(out, batch, loss_cfg)
         opt.zero_grad(set_to_none=True)
         if scaler is not None:
             scaler.scale(loss).backward()
@@ -259,6 +260,7 @@ def fit(
         "world_size": world,
         "checkpoint": str(ckpt_path),
         "exposure": stats.exposure,
+        "loss_epsilon": loss_cfg.epsilon,  # measured when loss.epsilon_of_level is set
         "baseline_rgb": stats.baseline_rgb,
         "tensorboard": log is not None and log.tb is not None,
     }
