@@ -505,16 +505,27 @@ def dask_executor(
         import dask
 
         env = {k: str(threads_per_worker) for k in SINGLE_THREAD_ENV}
-        with dask.config.set({"distributed.nanny.pre-spawn-environ": worker_spawn_environ()}):
-            cluster = LocalCluster(
-                n_workers=workers,
-                threads_per_worker=threads_per_worker,
-                processes=True,
-                memory_limit=memory_limit,
-                dashboard_address=dashboard or ":0",  # the HTTP server starts anyway: never a fixed port
-                silence_logs=logging.ERROR,
-                env=env,
-            )
+        spawn_env = worker_spawn_environ()
+        # dask's nanny writes the pre-spawn variables into this process's environment before it spawns a
+        # worker; put it back, so processes this one starts later (training, pools) keep glibc's defaults
+        saved = {k: os.environ.get(k) for k in spawn_env}
+        try:
+            with dask.config.set({"distributed.nanny.pre-spawn-environ": spawn_env}):
+                cluster = LocalCluster(
+                    n_workers=workers,
+                    threads_per_worker=threads_per_worker,
+                    processes=True,
+                    memory_limit=memory_limit,
+                    dashboard_address=dashboard or ":0",  # the HTTP server starts anyway: never a fixed port
+                    silence_logs=logging.ERROR,
+                    env=env,
+                )
+        finally:
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
         stack.callback(cluster.close)
         client = Client(cluster)
         stack.callback(client.close)

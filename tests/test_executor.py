@@ -13,7 +13,13 @@ from pathlib import Path
 import pytest
 
 from lightstage.errors import EnvironmentFault, LightstageError, is_environment_error
-from lightstage.executor import LoopExecutor, PoolExecutor, TaskFailure, dask_executor
+from lightstage.executor import (
+    WORKER_MALLOC_ENV,
+    LoopExecutor,
+    PoolExecutor,
+    TaskFailure,
+    dask_executor,
+)
 
 
 # ---- tasks (top level: the pool and dask workers import them from this module) ---------------------------
@@ -67,6 +73,19 @@ def dask() -> object:
     ex = dask_executor(workers=2, dashboard="", verbose=False)
     yield ex
     ex.close()
+
+
+def test_workers_get_the_malloc_settings_and_this_process_keeps_its_own(monkeypatch) -> None:
+    for k in WORKER_MALLOC_ENV:
+        monkeypatch.delenv(k, raising=False)
+    ex = dask_executor(workers=1, dashboard="", verbose=False)
+    try:
+        seen = ex.client.run(lambda: {k: os.environ.get(k) for k in WORKER_MALLOC_ENV})
+    finally:
+        ex.close()
+    assert list(seen.values()) == [WORKER_MALLOC_ENV]
+    # dask's nanny sets them here before spawning: they must not leak into what this process starts later
+    assert not any(k in os.environ for k in WORKER_MALLOC_ENV)
 
 
 def executors(dask_ex) -> list:
