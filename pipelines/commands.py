@@ -52,7 +52,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     demo = subparsers.add_parser(
         "demo",
         help="simulate a small capture, run the whole pipeline on it and write a report",
-        description="Simulate a capture, run every stage with the tiny training config, write WORK/report.md.",
+        description="Simulate a capture, run every stage with the `cpu` training config, write WORK/report.md.",
     )
     demo.add_argument(
         "--work", type=Path, default=Path("demo-work"), help="work directory (default demo-work)"
