@@ -53,9 +53,7 @@ def main() -> int:
     ap.add_argument("--minutes", type=float, default=60.0)
     ap.add_argument("--eval-every", type=int, default=2000)
     ap.add_argument("--out", type=Path, default=None)
-    ap.add_argument(
-        "--override", default="{}", help="YAML mapping merged into --config (after the flags)"
-    )
+    ap.add_argument("--override", default="{}", help="YAML mapping merged into --config (after the flags)")
     ap.add_argument("--config", default="cpu", help="training config (default cpu)")
     ap.add_argument("--device", default="cpu", help="torch device (default cpu)")
     ap.add_argument("--chunk", type=int, default=1000, help="steps between time-budget checks (default 1000)")
