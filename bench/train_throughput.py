@@ -24,9 +24,9 @@ import torch
 from support.synthetic import SyntheticSphere
 
 from lightstage.training.config import BUILTIN_CONFIGS, load_config
-from lightstage.training.losses import total_loss
+from lightstage.training.losses import measured_epsilon, total_loss
 from lightstage.training.model import RelightModel
-from lightstage.training.trainer import autocast_context
+from lightstage.training.trainer import autocast_context, compute_stats, make_optimizer
 
 
 def prefill_occupancy(model: RelightModel, src: SyntheticSphere) -> None:
@@ -46,14 +46,17 @@ def measure(name: str, device: str, batch: int, steps: int, warmup: int, prefill
     model = RelightModel(cfg.model, src.centre, src.scale).to(dev)
     if model.occupancy is not None and prefill:
         prefill_occupancy(model, src)
-    opt = torch.optim.Adam(model.parameters(), lr=1e-4)
+    # the trainer's optimiser (fused Adam) and loss epsilon, so a step costs what a training step does
+    opt = make_optimizer(model, cfg.optim)
+    stats = compute_stats(src, cfg.eval.stats_batches, cfg.eval.exposure_percentile)
+    loss_cfg = measured_epsilon(cfg.loss, stats.exposure)
     batches = [{k: v.to(dev) for k, v in src.batch(i).items()} for i in range(4)]
 
     def step(i: int) -> None:
         b = batches[i % len(batches)]
         with autocast_context(dev, cfg.optim.precision):
             out = model(b["origins"], b["directions"], b["light_directions"], randomized=True)
-        loss, _ = total_loss(out, b, cfg.loss)
+        loss, _ = total_loss(out, b, loss_cfg)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

@@ -102,6 +102,19 @@ def autocast_context(device: torch.device, precision: str) -> contextlib.Abstrac
     return torch.autocast("cuda", dtype=dtype)
 
 
+def make_optimizer(model: torch.nn.Module, ocfg: OptimConfig) -> torch.optim.Adam:
+    """The training optimiser: Adam with the config's betas, epsilon and weight decay, fused (one kernel per
+    tensor: ~10x less CPU time than the default for-each step on `fast`'s 16 M parameters)."""
+    return torch.optim.Adam(
+        model.parameters(),
+        lr=ocfg.lr,
+        betas=(ocfg.beta1, ocfg.beta2),
+        eps=ocfg.adam_eps,
+        weight_decay=ocfg.weight_decay,
+        fused=True,
+    )
+
+
 def fit(
     config: TrainConfig,
     source: BatchSource,
@@ -131,14 +144,7 @@ def fit(
     random.seed(cfg.seed + rank)
 
     model = RelightModel(cfg.model, centre, scale, box, hull).to(device)
-    opt = torch.optim.Adam(
-        model.parameters(),
-        lr=ocfg.lr,
-        betas=(ocfg.beta1, ocfg.beta2),
-        eps=ocfg.adam_eps,
-        weight_decay=ocfg.weight_decay,
-        fused=True,  # one kernel per tensor: ~10x less CPU time than the default for-each step (16 M params)
-    )
+    opt = make_optimizer(model, ocfg)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, ocfg))
     use_scaler = device.type == "cuda" and ocfg.precision == "fp16"
     scaler = torch.amp.GradScaler("cuda", enabled=use_scaler) if use_scaler else None
