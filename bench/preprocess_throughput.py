@@ -126,7 +126,8 @@ def decode_only_worker_malloc(paths: list[Path]) -> tuple[float, float]:
     import subprocess
     import sys
 
-    from lightstage.executor import SINGLE_THREAD_ENV, WORKER_MALLOC_ENV
+    from lightstage.dask_executor import WORKER_MALLOC_ENV
+    from lightstage.executor import SINGLE_THREAD_ENV
 
     code = (
         "import json, sys, threading; sys.path.insert(0, sys.argv[1]); import preprocess_throughput as b; "

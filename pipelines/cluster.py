@@ -6,7 +6,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from lightstage.executor import Executor, LoopExecutor, dask_executor
+from lightstage.dask_executor import dask_executor
+from lightstage.executor import Executor, LoopExecutor
 
 
 @dataclass(frozen=True)

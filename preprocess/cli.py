@@ -66,7 +66,7 @@ def _preprocess(args: argparse.Namespace) -> int:
     work.link_capture(capture.root)
     progress = not args.quiet
     if args.workers or args.scheduler:
-        from lightstage.executor import dask_executor
+        from lightstage.dask_executor import dask_executor
 
         with dask_executor(args.scheduler, max(args.workers, 1), dashboard="", verbose=progress) as executor:
             summary = run_preprocess(work, config, executor, progress=progress)

@@ -12,14 +12,9 @@ from pathlib import Path
 
 import pytest
 
+from lightstage.dask_executor import WORKER_MALLOC_ENV, dask_executor
 from lightstage.errors import EnvironmentFault, LightstageError, is_environment_error
-from lightstage.executor import (
-    WORKER_MALLOC_ENV,
-    LoopExecutor,
-    PoolExecutor,
-    TaskFailure,
-    dask_executor,
-)
+from lightstage.executor import LoopExecutor, PoolExecutor, TaskFailure
 
 
 # ---- tasks (top level: the pool and dask workers import them from this module) ---------------------------

@@ -20,8 +20,8 @@ if str(TESTS) not in sys.path:
 
 import test_pipeline_fakes as fakes  # noqa: E402
 
+from lightstage.dask_executor import WORKER_MALLOC_ENV  # noqa: E402
 from lightstage.errors import LightstageError  # noqa: E402
-from lightstage.executor import WORKER_MALLOC_ENV  # noqa: E402
 from lightstage.pipelines.cli import main as cli_main  # noqa: E402
 from lightstage.pipelines.config import PipelineConfig, load_pipeline_config  # noqa: E402
 from lightstage.pipelines.records import read_record  # noqa: E402
@@ -205,7 +205,7 @@ def test_stage_that_skips_its_expected_output_is_incomplete(tmp_path: Path, capt
 def test_worker_killed_mid_run_completes_with_identical_outputs(
     tmp_path: Path, capture: Path, kill_process_when
 ) -> None:
-    from lightstage.executor import dask_executor
+    from lightstage.dask_executor import dask_executor
 
     ref = WorkDir.at(tmp_path / "ref")
     run_pipeline(ref, fake_config(), capture=capture, progress=False, log=lambda m: None)

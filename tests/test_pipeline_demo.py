@@ -9,7 +9,8 @@ import numpy as np
 
 from lightstage.frames import read_image as read_png
 from lightstage.frames import write_image
-from lightstage.pipelines.demo import montage, pick_envmap, sky_envmap, write_report
+from lightstage.pipelines.demo import pick_envmap, sky_envmap
+from lightstage.pipelines.demo_report import montage, write_report
 from lightstage.workdir import WorkDir
 
 
@@ -58,8 +59,14 @@ def test_report_collects_pictures_and_metrics(tmp_path: Path) -> None:
             }
         )
     )
-    path = write_report(work, {"eval": 1.0}, {"envmap": "sky.exr", "tonemap": "srgb"}, 60.0, "tiny (seed 0)")
+    relit = {
+        "envmap": "sky.exr",
+        "tonemap": "srgb",
+        "views": {"000_cam00": {"results": {"16": {"lights": 16}}}},
+    }
+    path = write_report(work, {"eval": 1.0}, relit, 60.0, "tiny (seed 0)")
     text = path.read_text()
+    assert "Envmap: `sky.exr`, 16 median-cut lights; tonemap: srgb." in text
     assert "| light position (mm) | 1.24 | 3.03 |" in text and "| group yaw (deg) | 0.003 | 0.007 |" in text
     assert "Lights observed: 16 of 16 (0 as bulbs in view, 16 in the mirror-ball probe)." in text
     for pic in ("masks.png", "layout.png", "predictions.png", "relit_000_cam00_k016.png"):
@@ -76,7 +83,7 @@ def test_montage_tiles_different_sizes() -> None:
 
 
 def test_report_shows_the_psnr_curve_the_ceiling_and_labelled_predictions(tmp_path: Path) -> None:
-    from lightstage.pipelines.demo import COLUMNS, prediction_grid
+    from lightstage.pipelines.demo_report import COLUMNS, prediction_grid
 
     work = WorkDir.at(tmp_path / "work")
     names = ["000_cam19_003", "040_cam19_003", "080_cam18_003"]

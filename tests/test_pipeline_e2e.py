@@ -100,7 +100,7 @@ def test_real_stages_survive_a_killed_worker_with_identical_outputs(
 ) -> None:
     """A dask worker SIGKILLed while the real preprocess stage runs: the run completes (the task is retried on
     the restarted worker) and validate..shard outputs equal those of an uninterrupted in-process run."""
-    from lightstage.executor import dask_executor
+    from lightstage.dask_executor import dask_executor
     from lightstage.pipelines.config import PipelineConfig
     from lightstage.pipelines.runner import run_pipeline
 

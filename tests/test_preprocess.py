@@ -533,7 +533,7 @@ def test_killed_run_resumes_with_identical_outputs(tiny_capture: Path, tmp_path:
 def test_dask_client_gives_the_same_outputs(tiny_capture: Path, tmp_path: Path) -> None:
     from distributed import Client, LocalCluster
 
-    from lightstage.executor import DaskExecutor
+    from lightstage.dask_executor import DaskExecutor
 
     cap = _subset_capture(tiny_capture, tmp_path / "cap", groups=1, cameras=2)
     local = _work(tmp_path / "local", cap)

@@ -188,7 +188,7 @@ def test_parallel_local_pool_writes_identical_shards(sharded, tmp_path):
 
 @pytest.mark.slow
 def test_dask_client_writes_identical_shards(sharded, tmp_path):
-    from lightstage.executor import dask_executor
+    from lightstage.dask_executor import dask_executor
 
     work, _, _ = sharded
     ref = load_manifest(work.shards_dir)

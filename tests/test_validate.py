@@ -330,7 +330,7 @@ def test_header_parser_on_valid_layouts_and_every_truncation(tmp_path):
 
 def test_run_validate_on_dask_matches_local(bad_capture, tmp_path):
     distributed = pytest.importorskip("distributed")
-    from lightstage.executor import DaskExecutor
+    from lightstage.dask_executor import DaskExecutor
 
     work = WorkDir.at(tmp_path / "work")
     work.root.mkdir()

@@ -1,0 +1,188 @@
+"""The dask backend of `lightstage.executor`: a DaskExecutor over a distributed.Client, started on a LocalCluster
+of single-threaded worker processes or connected to a running scheduler. Imported only where a stage runs on
+dask (dask itself is imported lazily inside), so stages never see it."""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import logging
+import os
+import sys
+import uuid
+from collections.abc import Callable
+from typing import Any
+
+from lightstage.errors import EnvironmentFault, LightstageError
+from lightstage.executor import SINGLE_THREAD_ENV, Executor, task_name
+
+# glibc malloc settings for dask worker processes, in their environment before they start (dask's
+# `pre-spawn-environ`). Dask's MALLOC_TRIM_THRESHOLD_=64 KiB freezes glibc's mmap threshold at 128 KiB, so every
+# multi-MB band buffer of the per-frame work became a fresh page-faulting mmap (~20% more CPU per raw frame in
+# preprocess, docs/benchmarks.md). OpenEXR's whole-frame decode (268 MB at 8192x5464 half RGB, 537 MB float)
+# was one too: blocks up to 1 GiB come from the heap and up to 1 GiB of free heap is kept, in one arena (tasks
+# run in a worker thread, whose own arena cannot hold such blocks and maps them afresh): the kernel's share of
+# a decode fell from 0.10-0.14 to 0.02-0.03 s per frame on the AMD EPYC VM. Peak memory is unchanged (the
+# freed frame is the next frame's buffer).
+WORKER_MALLOC_ENV = {
+    "MALLOC_ARENA_MAX": "1",
+    "MALLOC_MMAP_THRESHOLD_": str(1 << 30),
+    "MALLOC_TRIM_THRESHOLD_": str(1 << 30),
+}
+
+
+class _DaskSession:
+    def __init__(self, client: Any, fn: Callable[..., Any]) -> None:
+        from distributed import as_completed
+
+        self.client = client
+        self.prefix = f"{task_name(fn)}-{uuid.uuid4().hex[:10]}"
+        self.counter = itertools.count()
+        self.queue = as_completed()
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> Any:
+        key = f"{self.prefix}-{next(self.counter)}"
+        fut = self.client.submit(fn, *args, key=key, pure=False)
+        self.queue.add(fut)
+        return fut
+
+    def wait(self, handles: list[Any]) -> list[Any]:
+        return [next(self.queue)]
+
+    def outcome(self, h: Any) -> tuple[bool, Any]:
+        try:
+            if h.status == "finished":
+                return True, h.result()
+            if h.status == "cancelled":
+                return False, EnvironmentFault(f"task {h.key} was cancelled by the scheduler")
+            try:
+                return False, h.exception()
+            except Exception as e:  # noqa: BLE001 - a lost future raises here
+                return False, e
+        finally:
+            h.release()
+
+    def cancel(self, h: Any) -> None:
+        h.cancel()
+
+    def broken(self, exc: BaseException) -> bool:
+        return False
+
+    def recover(self) -> None:
+        pass
+
+    def close(self) -> None:
+        self.queue.clear()
+
+
+class DaskExecutor(Executor):
+    """Tasks on a dask cluster through `client` (a distributed.Client); a killed worker's tasks are
+    rescheduled by dask on the others. `owned` exit stack: what `close` shuts down (cluster, client)."""
+
+    kind = "dask"
+
+    def __init__(self, client: Any, owned: contextlib.ExitStack | None = None) -> None:
+        self.client = client
+        self._owned = owned
+
+    def slots(self) -> int:
+        try:
+            return max(1, sum(self.client.nthreads().values()))
+        except Exception:  # noqa: BLE001 - a scheduler hiccup must not stop a stage from sizing its window
+            return 1
+
+    def _session(self, fn: Callable[..., Any]) -> _DaskSession:
+        return _DaskSession(self.client, fn)
+
+    def worker_pids(self) -> list[int]:
+        """The process ids of the cluster's workers (tests and benchmarks kill one)."""
+        return sorted(self.client.run(os.getpid).values())
+
+    def close(self) -> None:
+        if self._owned is not None:
+            self._owned.close()
+            self._owned = None
+
+
+def library_threads_plugin(n: int) -> Any:
+    """A dask WorkerPlugin giving every worker (restarted ones too) `n` threads per native library."""
+    from distributed.diagnostics.plugin import WorkerPlugin
+
+    class LibraryThreadsPlugin(WorkerPlugin):
+        name = "lightstage-library-threads"
+        idempotent = True
+
+        def setup(self, worker: Any) -> None:
+            from lightstage.threads import set_library_threads
+
+            set_library_threads(n)
+
+    return LibraryThreadsPlugin()
+
+
+def worker_spawn_environ() -> dict[str, Any]:
+    """dask's `distributed.nanny.pre-spawn-environ` with lightstage's worker malloc settings added."""
+    import dask
+
+    return {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **WORKER_MALLOC_ENV}
+
+
+def dask_executor(
+    scheduler: str | None = None,
+    workers: int = 2,
+    threads_per_worker: int = 1,
+    memory_limit: str = "auto",
+    dashboard: str = ":0",
+    verbose: bool = True,
+) -> DaskExecutor:
+    """Connect to `scheduler` (tcp://HOST:PORT) or start a LocalCluster of `workers` single-threaded worker
+    processes; every worker gets one library thread per worker thread. Close the executor to stop it."""
+    from distributed import Client, LocalCluster
+
+    stack = contextlib.ExitStack()
+    if scheduler:
+        try:
+            client = Client(scheduler, timeout="20s")
+        except (OSError, TimeoutError) as e:
+            raise LightstageError(f"cannot connect to dask scheduler {scheduler}: {e}") from None
+        stack.callback(client.close)
+    else:
+        if workers < 1:
+            raise LightstageError(f"cluster.workers: expected at least 1 worker, got {workers}")
+        import dask
+
+        env = {k: str(threads_per_worker) for k in SINGLE_THREAD_ENV}
+        spawn_env = worker_spawn_environ()
+        # dask's nanny writes the pre-spawn variables into this process's environment before it spawns a
+        # worker; put it back, so processes this one starts later (training, pools) keep glibc's defaults
+        saved = {k: os.environ.get(k) for k in spawn_env}
+        try:
+            with dask.config.set({"distributed.nanny.pre-spawn-environ": spawn_env}):
+                cluster = LocalCluster(
+                    n_workers=workers,
+                    threads_per_worker=threads_per_worker,
+                    processes=True,
+                    memory_limit=memory_limit,
+                    dashboard_address=dashboard or ":0",  # the HTTP server starts anyway: never a fixed port
+                    silence_logs=logging.ERROR,
+                    env=env,
+                )
+        finally:
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
+        stack.callback(cluster.close)
+        client = Client(cluster)
+        stack.callback(client.close)
+    try:
+        client.register_plugin(library_threads_plugin(threads_per_worker))
+    except BaseException:
+        stack.close()
+        raise
+    if verbose:
+        where = scheduler or f"LocalCluster, {workers} worker processes"
+        link = getattr(client, "dashboard_link", None) if (scheduler or dashboard) else None
+        print(f"dask: {where}" + (f"; dashboard {link}" if link else ""), file=sys.stderr)
+    return DaskExecutor(client, stack)
