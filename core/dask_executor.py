@@ -127,6 +127,17 @@ def worker_spawn_environ() -> dict[str, Any]:
     return {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **WORKER_MALLOC_ENV}
 
 
+def in_dask_worker() -> bool:
+    """Whether this code runs inside a dask worker (tasks there set one library thread per process)."""
+    try:
+        from distributed import get_worker
+
+        get_worker()
+        return True
+    except (ImportError, ValueError):
+        return False
+
+
 def dask_executor(
     scheduler: str | None = None,
     workers: int = 2,

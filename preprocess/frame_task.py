@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from lightstage.atomic import atomic_path
+from lightstage.dask_executor import in_dask_worker
 from lightstage.errors import EnvironmentFault, LightstageError, is_environment_error
 from lightstage.exr_header import prefetch_file
 from lightstage.frames import pixel_verdict
@@ -19,7 +20,6 @@ from lightstage.preprocess.downscale import Downscaled, decode_downscale_factors
 from lightstage.preprocess.jobs import (
     ChunkJob,
     ChunkRecord,
-    in_dask_worker,
     partial_path,
     reason_of,
     remove_stale_temps,

@@ -128,17 +128,6 @@ def split_lights(lights: list[int], size: int) -> list[tuple[int, ...]]:
     return [tuple(lights[i : i + size]) for i in range(0, len(lights), size)]
 
 
-def in_dask_worker() -> bool:
-    """Whether this code runs inside a dask worker (tasks there set one library thread per process)."""
-    try:
-        from distributed import get_worker
-
-        get_worker()
-        return True
-    except (ImportError, ValueError):
-        return False
-
-
 def file_signature(path: str) -> list[float]:
     """[size, mtime] of a raw file ([-1, -1] when it cannot be stat-ed): a bad frame is retried when it changes."""
     try:

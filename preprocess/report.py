@@ -141,8 +141,8 @@ def write_previews(
 
 def write_view_previews(job: PreviewJob) -> None:
     """Executor task: a view's four preview PNGs from its mean image, mask and SfM image (`write_png`)."""
+    from lightstage.dask_executor import in_dask_worker
     from lightstage.frames import read_exr, write_png
-    from lightstage.preprocess.jobs import in_dask_worker
     from lightstage.preprocess.segment import overlay, zone_map
     from lightstage.preprocess.sfm_image import upsample_mask
     from lightstage.records.processed import read_mask, to_float

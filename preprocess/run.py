@@ -20,6 +20,7 @@ from typing import Any
 
 from lightstage.atomic import write_json_atomic
 from lightstage.capture.layout import Capture, open_capture
+from lightstage.dask_executor import in_dask_worker
 from lightstage.errors import LightstageError, StageIncomplete
 from lightstage.executor import Executor, LoopExecutor, TaskFailure
 from lightstage.ids import FrameId, ViewId
@@ -31,7 +32,6 @@ from lightstage.preprocess.jobs import (
     ChunkRecord,
     ViewJob,
     ViewRecord,
-    in_dask_worker,
     split_lights,
 )
 from lightstage.preprocess.report import add_group_flags, build_report, write_previews

@@ -193,3 +193,36 @@ def test_a_backward_import_is_caught(source, importer):
 
 def test_a_cycle_is_caught():
     assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+DASK_BACKEND = "core/dask_executor.py"  # the one module behind the executor interface that imports dask
+
+
+def dask_importers(planted: dict[str, str] | None = None) -> list[str]:
+    """Repo-relative files (other than the dask backend) that import `dask` or `distributed` anywhere."""
+    planted = planted or {}
+    out = []
+    for folder, _ in LAYERS:
+        for path in sorted((REPO / folder).rglob("*.py")):
+            rel = str(path.relative_to(REPO))
+            tree = ast.parse(path.read_text() + planted.get(rel, ""), rel)
+            for node in ast.walk(tree):
+                if isinstance(node, ast.Import):
+                    roots = [a.name.split(".")[0] for a in node.names]
+                elif isinstance(node, ast.ImportFrom) and not node.level:
+                    roots = [(node.module or "").split(".")[0]]
+                else:
+                    continue
+                if rel != DASK_BACKEND and {"dask", "distributed"} & set(roots):
+                    out.append(rel)
+                    break
+    return out
+
+
+def test_only_the_dask_backend_imports_dask():
+    """Stages and pipelines reach dask only through lightstage.executor / lightstage.dask_executor."""
+    found = dask_importers()
+    assert not found, f"import dask outside {DASK_BACKEND}:\n" + "\n".join(found)
+    assert dask_importers({"preprocess/jobs.py": "def f():\n    from distributed import get_worker\n"}) == [
+        "preprocess/jobs.py"
+    ]
