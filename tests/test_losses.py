@@ -73,3 +73,13 @@ def test_epsilon_measured_from_the_data_level():
     assert measured_epsilon(rel, exposure=0.25).epsilon == pytest.approx(0.03 / 0.25)
     with pytest.raises(ConfigError):
         LossConfig(epsilon_of_level=0.0)
+
+
+def test_our_configs_measure_epsilon_and_the_paper_keeps_rawnerfs():
+    """`cpu` and `fast` scale eps with the capture's level (docs/benchmarks.md); `paper` keeps the cited 1e-3."""
+    from lightstage.training.config import load_config
+
+    for name in ("cpu", "fast"):
+        assert load_config(name).loss.epsilon_of_level == pytest.approx(0.028)
+    paper = load_config("paper").loss
+    assert paper.epsilon_of_level is None and paper.epsilon == pytest.approx(1e-3)
