@@ -274,10 +274,11 @@ def run_calibrate(
         plot_layout(calib, work.calibration_dir / "layout.png")
         gt = GroundTruth.of(capture.root).geometry
         if gt.is_file():
-            from lightstage.calibration.evaluate import compare_to_truth
+            from lightstage.calibration.evaluate import compare_to_truth, true_object_points
 
             truth = Calibration.load(gt)
-            report["ground_truth"] = compare_to_truth(calib, truth, light_floor(capture, truth))
+            points = true_object_points(GroundTruth.of(capture.root).scene)
+            report["ground_truth"] = compare_to_truth(calib, truth, light_floor(capture, truth), points)
             probe_truth = GroundTruth.of(capture.root).probe
             if "probe" in stats and probe_truth.is_file():
                 report["ground_truth"]["probe_ball_centre_error_mm"] = ball_centre_errors(

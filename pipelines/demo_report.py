@@ -274,6 +274,11 @@ def _calibration_table(cal: dict[str, Any]) -> list[str]:
         ("camera centre (mm)", raw.get("camera_centre_error_mm", {})),
         ("light position (mm)", raw.get("light_position_error_mm", {})),
         ("group yaw (deg)", {k: abs(v) for k, v in gt.get("yaw_error_deg", {}).items() if k != "per_group"}),
+        # what the pose errors do to the model's pixels (per-view mean over the true object box, aligned)
+        (
+            "object reprojection shift (processed px)",
+            gt.get("aligned", {}).get("object_reprojection_shift_px", {}),
+        ),
     ]
     lines = [
         "",

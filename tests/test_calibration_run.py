@@ -333,3 +333,30 @@ def test_sfm_without_preprocess_sfm_images_names_them(tiny_capture: Path, tmp_pa
     ):
         run_calibrate(work, CalibrateConfig(method="sfm"), progress=False)
     assert not work.calibration.exists()
+
+
+def test_two_view_verification_is_seeded(tiny_capture: Path, tmp_path: Path, monkeypatch):
+    """COLMAP seeds each pair's RANSAC from the clock unless given a seed; the calibration passes its own, so
+    verification keeps the same inliers whichever matching thread takes a pair."""
+    import pycolmap
+
+    work = flat_grey_views(tiny_capture, tmp_path / "w", sfm_images=True)
+    stage = open_capture(tiny_capture).stage
+    w, h = stage.width // DOWNSCALE, stage.height // DOWNSCALE
+    work.sfm_info.write_text(
+        json.dumps({"factor": DOWNSCALE, "size": [w, h], "lights": [0], "exposure": 1.0})
+    )
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def record(*args, verification_options=None, **kwargs):
+        seen.append(verification_options.ransac.random_seed)
+        raise Stop
+
+    monkeypatch.setattr(pycolmap, "match_image_pairs", record)
+    monkeypatch.setattr(pycolmap, "match_exhaustive", record)
+    with pytest.raises(Stop):
+        run_calibrate(work, CalibrateConfig(method="sfm", seed=7), progress=False)
+    assert seen == [7]
