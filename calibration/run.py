@@ -272,14 +272,14 @@ def run_calibrate(
         report["colmap"] = write_colmap_model(calib, work.calibration_dir / "colmap", tracks, work)
         write_transforms(calib, work.calibration_dir / "transforms.json", work)
         plot_layout(calib, work.calibration_dir / "layout.png")
-        gt = GroundTruth.of(capture.root).geometry
-        if gt.is_file():
+        gt = GroundTruth.of(capture.root)
+        if gt.geometry.is_file():
             from lightstage.calibration.evaluate import compare_to_truth, true_object_points
 
-            truth = Calibration.load(gt)
-            points = true_object_points(GroundTruth.of(capture.root).scene)
+            truth = Calibration.load(gt.geometry)
+            points = true_object_points(gt.scene)
             report["ground_truth"] = compare_to_truth(calib, truth, light_floor(capture, truth), points)
-            probe_truth = GroundTruth.of(capture.root).probe
+            probe_truth = gt.probe
             if "probe" in stats and probe_truth.is_file():
                 report["ground_truth"]["probe_ball_centre_error_mm"] = ball_centre_errors(
                     stats["probe"], probe_truth

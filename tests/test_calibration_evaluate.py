@@ -46,7 +46,7 @@ def test_shift_is_zero_for_the_true_pose_in_any_gauge():
 
 def test_shift_discounts_the_rotation_a_narrow_camera_cannot_see():
     """A 0.13 deg camera rotation shifts the object by f * angle; the same angle about the object's centre (the
-    camera also moves 2.5 mm sideways, as in a weakly constrained SfM run) shifts it by ~20x less."""
+    camera also moves 2.5 mm sideways, as in a weakly constrained SfM run) shifts it ~30x less."""
     d = 1.1
     R, t = look_at([d, 0.0, 0.0], [0.0, 0.0, 0.0])
     theta = np.deg2rad(0.13)
