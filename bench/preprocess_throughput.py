@@ -2,9 +2,8 @@
 
 Generates a few real-size raw frames in a temp dir (simulator-like content: dark noisy background, a lit
 textured object, a saturated bulb, a flare), then measures in one run:
-  * the CPU model, and each decoder's decode-only cost per frame, one library thread: OpenEXR's whole-frame
-    `File` (the floor; `decoder: openexr`), OpenImageIO in 32-row bands (`decoder: bands`) and OpenEXR's
-    scanline-range reads in 32-row bands (`decoder: openexr-bands`);
+  * the CPU model, and both decoders' decode-only cost per frame, one library thread: OpenEXR's whole-frame
+    `File` (the floor; the stage's default `decoder: openexr`) and OpenImageIO in 32-row bands (`decoder: bands`);
   * a per-step breakdown of the per-frame work (read-ahead, decode, downscale, write, statistics), one thread,
     and the per-frame path of each decoder as the chunk task runs it;
   * the whole stage (`run_preprocess`) on a dask LocalCluster with 1 and with 2 single-threaded worker
@@ -167,31 +166,6 @@ def decode_only_oiio(paths: list[Path], band_rows: int = 32, repeats: int = 2) -
     return float(np.mean(times)), float(np.mean(cpus))
 
 
-def decode_only_openexr_bands(
-    paths: list[Path], band_rows: int = 32, repeats: int = 2
-) -> tuple[float, float]:
-    """Mean (wall, CPU) seconds per OpenEXR decode of R, G, B as half through its scanline-range reads
-    (`OpenEXR.InputFile.channels`, planar) in `band_rows` bands, as `decoder: openexr-bands` reads them."""
-    import Imath
-    import OpenEXR
-
-    half = Imath.PixelType(Imath.PixelType.HALF)
-    times, cpus = [], []
-    for rep in range(repeats):
-        for p in paths:
-            t, c = time.perf_counter(), time.process_time()
-            f = OpenEXR.InputFile(str(p))
-            for y in range(0, RES[1], band_rows):
-                planes = f.channels(["R", "G", "B"], half, y, min(y + band_rows, RES[1]) - 1)
-                assert len(planes) == 3
-            f.close()
-            dt, dc = time.perf_counter() - t, time.process_time() - c
-            if rep:
-                times.append(dt)
-                cpus.append(dc)
-    return float(np.mean(times)), float(np.mean(cpus))
-
-
 def _decode_loop(paths: list[Path], stop, out) -> None:  # noqa: ANN001 - multiprocessing Event / Queue
     """Child process: decode the frames over and over until `stop` is set; put the (wall, CPU) samples."""
     from lightstage.threads import set_library_threads
@@ -232,12 +206,7 @@ def breakdown(paths: list[Path], tmp: Path) -> dict[str, dict[str, float]]:
     chunk task's reused buffers (frame_task.FrameBuffers); the write is timed for every lossless compression."""
     from lightstage.exr_header import prefetch_file
     from lightstage.frames import COMPRESSIONS
-    from lightstage.preprocess.downscale import (
-        available_decoders,
-        decode_downscale_factors,
-        decode_raw,
-        downscale,
-    )
+    from lightstage.preprocess.downscale import decode_downscale_factors, decode_raw, downscale
     from lightstage.preprocess.flare import lit_threshold, thumbnail
     from lightstage.preprocess.frame_task import FrameBuffers, check_finite
     from lightstage.preprocess.stats import StatsAccumulator
@@ -257,11 +226,9 @@ def breakdown(paths: list[Path], tmp: Path) -> dict[str, dict[str, float]]:
     bufs = FrameBuffers(RES[1] // 4, RES[0] // 4)
     out = (bufs.rgb, bufs.saturated)
     for i, p in enumerate(paths):
-        for dec in (d for d in available_decoders() if d != "openexr"):  # decoders: bands, openexr-bands
-            timed(
-                f"decode+downscale_{dec}",
-                lambda p=p, d=dec: decode_downscale_factors(p, RES, 4.4019, 32, (4,), out, d),
-            )
+        timed(  # decoder: bands
+            "decode+downscale_bands", lambda p=p: decode_downscale_factors(p, RES, 4.4019, 32, (4,), out)
+        )
         timed("read_ahead", lambda p=p: prefetch_file(p, 120.0))  # the read timeout's prefetch
         px = timed("decode", lambda p=p: decode_raw(p, RES))  # decoder: openexr ...
         small = timed("downscale", lambda px=px: downscale(px, 4.4019, 32, out=out))  # ... then the downscale
@@ -299,18 +266,12 @@ def interleaved(paths: list[Path], tmp: Path, rounds: int) -> dict:
     all three see the same load; CPU seconds (median) and the per-frame ratio to the floor."""
     from lightstage.exr_header import prefetch_file
     from lightstage.frames import pixel_verdict
-    from lightstage.preprocess.downscale import (
-        available_decoders,
-        decode_downscale_factors,
-        decode_raw,
-        downscale,
-    )
+    from lightstage.preprocess.downscale import decode_downscale_factors, decode_raw, downscale
     from lightstage.preprocess.flare import lit_threshold, thumbnail
     from lightstage.preprocess.frame_task import FrameBuffers, check_finite
     from lightstage.preprocess.stats import StatsAccumulator
     from lightstage.records.processed import write_processed
 
-    decoders = available_decoders()
     h, w = RES[1] // 4, RES[0] // 4
     acc, bufs = StatsAccumulator(h, w, 4.4019), FrameBuffers(h, w)
     out = (bufs.rgb, bufs.saturated)
@@ -318,9 +279,9 @@ def interleaved(paths: list[Path], tmp: Path, rounds: int) -> dict:
     def frame_path(p: Path, i: int, decoder: str) -> None:
         prefetch_file(p, 120.0)
         small = (
-            downscale(decode_raw(p, RES), 4.4019, 32, out=out)
-            if decoder == "openexr"
-            else decode_downscale_factors(p, RES, 4.4019, 32, (4,), out, decoder)[0]
+            decode_downscale_factors(p, RES, 4.4019, 32, (4,), out)[0]
+            if decoder == "bands"
+            else downscale(decode_raw(p, RES), 4.4019, 32, out=out)
         )
         assert pixel_verdict(small.non_finite, small.negative).ok
         check_finite(small.rgb, str(p))
@@ -334,12 +295,14 @@ def interleaved(paths: list[Path], tmp: Path, rounds: int) -> dict:
 
         OpenEXR.File(str(p)).parts[0].channels["RGB"].pixels  # noqa: B018 - the decode is the point
 
-    samples: dict[str, list[float]] = {"floor": [], **{d: [] for d in decoders}}
+    samples: dict[str, list[float]] = {"floor": [], "openexr": [], "bands": []}
     for r in range(rounds + 1):  # the first round warms the page cache
         p = paths[r % len(paths)]
-        steps = [("floor", lambda p=p: floor(p))]
-        steps += [(d, lambda p=p, r=r, d=d: frame_path(p, r, d)) for d in decoders]
-        for name, fn in steps:
+        for name, fn in (
+            ("floor", lambda p=p: floor(p)),
+            ("openexr", lambda p=p, r=r: frame_path(p, r, "openexr")),
+            ("bands", lambda p=p, r=r: frame_path(p, r, "bands")),
+        ):
             c = time.process_time()
             fn()
             if r:
@@ -347,7 +310,7 @@ def interleaved(paths: list[Path], tmp: Path, rounds: int) -> dict:
     f = np.array(samples["floor"])
     out = {"rounds": rounds, "cpu_s_median": {k: round(float(np.median(v)), 4) for k, v in samples.items()}}
     out["over_floor_median_of_pairs"] = {
-        k: round(float(np.median(np.array(samples[k]) / f)), 3) for k in decoders
+        k: round(float(np.median(np.array(samples[k]) / f)), 3) for k in ("openexr", "bands")
     }
     return out
 
@@ -466,18 +429,13 @@ def main() -> None:
         result["decode_only_worker_malloc_s"] = {"wall": round(mw, 4), "cpu": round(mc, 4)}
         oiio_wall, oiio_cpu = decode_only_oiio(distinct)
         result["decode_only_oiio_bands32_s"] = {"wall": round(oiio_wall, 4), "cpu": round(oiio_cpu, 4)}
-        from lightstage.preprocess.downscale import available_decoders
-
-        if "openexr-bands" in available_decoders():
-            xw, xc = decode_only_openexr_bands(distinct)
-            result["decode_only_openexr_bands32_s"] = {"wall": round(xw, 4), "cpu": round(xc, 4)}
         result["breakdown"] = breakdown(distinct, tmp)
         result["interleaved_per_frame"] = interleaved(distinct, tmp, args.ab_rounds)
         cpu = result["breakdown"]["cpu_s"]
-        paths_cpu = {"openexr": cpu["read_ahead"] + cpu["decode"] + cpu["downscale"]}
-        for dec in available_decoders():
-            if dec != "openexr":
-                paths_cpu[dec] = cpu["read_ahead"] + cpu[f"decode+downscale_{dec}"]
+        paths_cpu = {
+            "openexr": cpu["read_ahead"] + cpu["decode"] + cpu["downscale"],
+            "bands": cpu["read_ahead"] + cpu["decode+downscale_bands"],
+        }
         result["decode_path_cpu_s"] = {k: round(v, 4) for k, v in paths_cpu.items()}
         result["decode_path_over_floor"] = {k: round(v / dec_cpu, 3) for k, v in paths_cpu.items()}
         base = paths_cpu["openexr"] + cpu["half+check"] + cpu["statistics"]

@@ -10,7 +10,7 @@ from typing import Any
 
 from lightstage.config import ConfigError, load
 from lightstage.frames import COMPRESSIONS
-from lightstage.preprocess.downscale import available_decoders
+from lightstage.preprocess.downscale import DECODERS
 
 
 @dataclass(frozen=True)
@@ -25,10 +25,9 @@ class PreprocessConfig:
     # frame for the cheapest write; "piz" makes frames ~1/3 smaller for more CPU (docs/benchmarks.md).
     compression: str = "none"
     band_rows: int = 32  # raw rows decoded and downscaled per band (multiple of 4): stays in cache
-    # raw frame decoder, same results: auto (each worker times them on its first frames and keeps the cheapest:
+    # raw frame decoder, same results: auto (each worker times both on its first frames and keeps the cheaper:
     # which one wins depends on the machine, preprocess/decoder_choice.py) | openexr (whole frame, then banded
-    # downscale; +270 MB per worker) | bands (OpenImageIO scanline bands: never the whole frame in memory) |
-    # openexr-bands (OpenEXR's decoder in scanline bands, also never the whole frame)
+    # downscale; +270 MB per worker) | bands (OpenImageIO scanline bands: never the whole frame in memory)
     decoder: str = "auto"
     # ---- reliability
     read_timeout_s: float = (
@@ -119,8 +118,8 @@ class PreprocessConfig:
             raise bad("segmentation", "expected adaptive or lit_fraction")
         if self.compression not in COMPRESSIONS:
             raise bad("compression", f"expected one of {', '.join(COMPRESSIONS)}")
-        if self.decoder not in ("auto", *available_decoders()):
-            raise bad("decoder", f"expected one of auto, {', '.join(available_decoders())}")
+        if self.decoder not in ("auto", *DECODERS):
+            raise bad("decoder", f"expected one of auto, {', '.join(DECODERS)}")
         if not self.read_timeout_s > 0:
             raise bad("read_timeout_s", "expected a number of seconds > 0")
         if self.band_rows < 4 or self.band_rows % 4:

@@ -1,11 +1,11 @@
 """Which raw-frame decoder a worker process uses (config `decoder: auto`): measured on the machine, not assumed.
 
-The decoders of `downscale.DECODERS` give identical outputs but their cost depends on the CPU and the
+The two decoders of `downscale.DECODERS` give identical outputs but their cost depends on the CPU and the
 kernel: OpenEXR's whole-frame decode was the floor on an AMD EPYC VM (OpenImageIO's bands 1.6-1.9x), while on
 an Intel Xeon VM its per-frame path cost 2.2x the floor (fresh 268 MB arrays: page faults, huge-page zeroing)
-and the bands 1.14x; OpenEXR's own decoder in row bands avoids both costs (docs/benchmarks.md). So with `auto`
-each worker process decodes its first frames with the available decoders in turn (`PROBE_FRAMES` each; real
-frames, nothing is decoded twice), times them in CPU seconds and uses the cheapest one from then on. The choice and the timings go into the chunk records and the report.
+and the bands 1.14x (docs/benchmarks.md). So with `auto` each worker process decodes its first frames with the
+two decoders in turn (`PROBE_FRAMES` each; real frames, nothing is decoded twice), times them in CPU seconds
+and uses the cheaper one from then on. The choice and the timings go into the chunk records and the report.
 """
 
 from __future__ import annotations
@@ -15,27 +15,28 @@ import time
 from collections.abc import Callable
 from typing import TypeVar
 
-from lightstage.preprocess.downscale import available_decoders
+from lightstage.preprocess.downscale import DECODERS
 
 AUTO = "auto"
+CHOICES = (AUTO, *DECODERS)
 PROBE_FRAMES = 2  # frames per decoder timed before a process chooses (the first of each is not counted)
 
 T = TypeVar("T")
 
 
 def choose(samples: dict[str, list[float]], probe_frames: int = PROBE_FRAMES) -> str | None:
-    """The decoder (a key of `samples`) with the lowest median CPU seconds per frame once every one has
-    `probe_frames` samples beyond its first (which pays one-time costs: imports, first allocations); None while
-    still probing. Ties go to the first key."""
-    counted = {d: v[1:] for d, v in samples.items()}
+    """The decoder with the lowest median CPU seconds per frame once every decoder has `probe_frames` samples
+    beyond its first (which pays one-time costs: imports, first allocations); None while still probing.
+    Ties go to the first of DECODERS."""
+    counted = {d: samples.get(d, [])[1:] for d in DECODERS}
     if any(len(v) < probe_frames for v in counted.values()):
         return None
-    return min(counted, key=lambda d: statistics.median(counted[d]))
+    return min(DECODERS, key=lambda d: statistics.median(counted[d]))
 
 
 def next_to_probe(samples: dict[str, list[float]]) -> str:
-    """While probing, the decoder with the fewest samples (the first key on a tie): frames take turns."""
-    return min(samples, key=lambda d: len(samples[d]))
+    """While probing, the decoder with the fewest samples (the first of DECODERS on a tie): frames alternate."""
+    return min(DECODERS, key=lambda d: len(samples.get(d, [])))
 
 
 class DecoderChooser:
@@ -45,11 +46,9 @@ class DecoderChooser:
         self, probe_frames: int = PROBE_FRAMES, clock: Callable[[], float] = time.process_time
     ) -> None:
         self.probe_frames, self.clock = probe_frames, clock
-        self.samples: dict[str, list[float]] = {d: [] for d in available_decoders()}
+        self.samples: dict[str, list[float]] = {d: [] for d in DECODERS}
         self.chosen: str | None = None
-        self.counts: dict[str, int] = {
-            d: 0 for d in self.samples
-        }  # frames decoded by this process, per decoder
+        self.counts: dict[str, int] = {d: 0 for d in DECODERS}  # frames decoded by this process, per decoder
 
     def run(self, configured: str, decode: Callable[[str], T]) -> tuple[T, str]:
         """Decode one frame with `decode(decoder)`: the configured decoder, or under `auto` the chosen one (or

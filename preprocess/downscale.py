@@ -1,10 +1,10 @@
 """Decode a raw frame and make its exact 4x area-average downscale plus the per-pixel saturation flag.
 
-Three decoders give identical results (`DECODERS`, config `decoder`): `openexr` decodes the whole frame with
+Two decoders give identical results (`DECODERS`, config `decoder`): `openexr` decodes the whole frame with
 OpenEXR (`decode_raw`) and then downscales it in row bands (`downscale`); `bands` decodes row bands with
-OpenImageIO's scanline reads and `openexr-bands` with OpenEXR's scanline-range reads (`decode_downscale_factors`),
-so with either the full frame is never in memory. Which one is cheapest depends on the machine
-(docs/benchmarks.md), so the default `auto` measures them in each worker (`decoder_choice.py`). Row bands are converted half -> float32 with
+OpenImageIO's scanline reads (`decode_downscale_factors`), so the full frame is never in memory. Which one is
+cheaper depends on the machine (docs/benchmarks.md), so the default `auto` measures both in each worker
+(`decoder_choice.py`). Row bands are converted half -> float32 with
 PyTorch (vectorised; numpy's half conversion is ~20x slower) into a reused buffer and averaged with
 `cv2.resize(INTER_AREA)`, whose integer-factor path sums each 4x4 block in float32 and scales by 1/16 (a
 power of two, so no extra rounding). Saturation is tested on the raw half bits: for non-negative halfs the
@@ -15,11 +15,8 @@ only bands that reach the cutoff pay for the per-block test.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -37,7 +34,7 @@ def saturation_half(cutoff: float) -> np.float16:
     return h
 
 
-DECODERS = ("openexr", "bands", "openexr-bands")
+DECODERS = ("openexr", "bands")
 
 
 @dataclass(frozen=True)
@@ -81,7 +78,10 @@ def decode_raw(path: str | os.PathLike[str], size: tuple[int, int]) -> np.ndarra
             f = OpenEXR.File(str(path), separate_channels=True)
             pixels = np.stack([f.parts[0].channels[c].pixels for c in "RGB"], axis=-1)
     except Exception as e:  # noqa: BLE001 - any decoder failure is a per-frame problem
-        raise LightstageError(f"{path}: corrupt EXR pixel data ({_first_line(e)})") from None
+        text = str(e).strip().splitlines()
+        raise LightstageError(
+            f"{path}: corrupt EXR pixel data ({text[0][:200] if text else type(e).__name__})"
+        ) from None
     if pixels.shape != (size[1], size[0], 3) or pixels.dtype not in (np.float16, np.float32):
         raise LightstageError(
             f"{path}: decoded {pixels.shape} {pixels.dtype}, expected {size[1]}x{size[0]}x3"
@@ -224,34 +224,19 @@ def decode_downscale_factors(
     band_rows: int,
     factors: tuple[int, ...],
     out: tuple[np.ndarray, np.ndarray] | None = None,
-    decoder: str = "bands",
 ) -> list[Downscaled]:
     """`decode_downscale` at several factors from one banded decode (the processed frame and the SfM image's
     frame of a chunk task), each exactly `downscale(decode_raw(...), factor=f)`; `out` (as for
-    `BandDownscaler`) receives the first factor's. `decoder`: one of BAND_DECODERS."""
+    `BandDownscaler`) receives the first factor's."""
     import math
+
+    import OpenImageIO as oiio
 
     path = Path(path)
     kind = _check_raw_header(path, size)
     W, H = size
     step = math.lcm(*factors)
     band_rows = max(step, band_rows - band_rows % step)
-    scalers = [
-        BandDownscaler(size, cutoff, band_rows, f, out if i == 0 else None) for i, f in enumerate(factors)
-    ]
-    with BAND_DECODERS[decoder](path, kind, W, band_rows) as read:
-        for y in range(0, H, band_rows):
-            band = read(y, min(band_rows, H - y))
-            for scaler in scalers:
-                scaler.add(band)
-    return [scaler.result() for scaler in scalers]
-
-
-@contextmanager
-def _oiio_bands(path: Path, kind: str, W: int, band_rows: int) -> Iterator[Callable[[int, int], np.ndarray]]:
-    """Row bands through OpenImageIO's scanline reads: `read(y, n)` gives rows y..y+n-1 as (n, W, 3)."""
-    import OpenImageIO as oiio
-
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         raise LightstageError(f"{path}: cannot open ({oiio_error(oiio.geterror)})")
@@ -261,82 +246,23 @@ def _oiio_bands(path: Path, kind: str, W: int, band_rows: int) -> Iterator[Calla
         idx = [names.index(c) for c in "RGB"]
         lo, hi = min(idx), max(idx) + 1
         pick = None if idx == list(range(lo, hi)) else [i - lo for i in idx]
-
-        def read(y: int, n: int) -> np.ndarray:
-            band = inp.read_scanlines(0, 0, spec.y + y, spec.y + y + n, 0, lo, hi, kind)
+        y0 = spec.y
+        scalers = [
+            BandDownscaler(size, cutoff, band_rows, f, out if i == 0 else None) for i, f in enumerate(factors)
+        ]
+        for y in range(0, H, band_rows):
+            n = min(band_rows, H - y)
+            band = inp.read_scanlines(0, 0, y0 + y, y0 + y + n, 0, lo, hi, kind)
             if band is None or band.shape != (n, W, hi - lo):
                 raise LightstageError(
                     f"{path}: corrupt EXR pixel data in rows {y}-{y + n - 1} ({oiio_error(inp.geterror)})"
                 )
-            return band if pick is None else np.ascontiguousarray(band[..., pick])
-
-        yield read
+            band = band if pick is None else np.ascontiguousarray(band[..., pick])
+            for scaler in scalers:
+                scaler.add(band)
+        return [scaler.result() for scaler in scalers]
     finally:
         inp.close()
-
-
-def _legacy_openexr() -> tuple[Any, Any] | None:
-    """OpenEXR's scanline-range reader (`OpenEXR.InputFile` + `Imath`), or None where this OpenEXR has none
-    (the binding marks it deprecated: `available_decoders` then leaves `openexr-bands` out)."""
-    try:
-        import Imath
-        import OpenEXR
-    except ImportError:
-        return None
-    return (OpenEXR, Imath) if hasattr(OpenEXR, "InputFile") else None
-
-
-@contextmanager
-def _openexr_bands(
-    path: Path, kind: str, W: int, band_rows: int
-) -> Iterator[Callable[[int, int], np.ndarray]]:
-    """Row bands through OpenEXR's own decoder (its scanline-range read, planar), interleaved into one reused
-    (band_rows, W, 3) buffer: OpenEXR's decode cost without a whole frame in memory."""
-    mods = _legacy_openexr()
-    if mods is None:
-        raise LightstageError(
-            "decoder openexr-bands: this OpenEXR has no InputFile (use auto, openexr or bands)"
-        )
-    OpenEXR, Imath = mods
-    set_exr_limits()
-    half = kind == "half"
-    pixel_type = Imath.PixelType(Imath.PixelType.HALF if half else Imath.PixelType.FLOAT)
-    dtype = np.float16 if half else np.float32
-    try:
-        f = OpenEXR.InputFile(str(path))
-        y0 = f.header()["dataWindow"].min.y
-    except Exception as e:  # noqa: BLE001 - any decoder failure is a per-frame problem
-        raise LightstageError(f"{path}: cannot open ({_first_line(e)})") from None
-    buf = np.empty((band_rows, W, 3), dtype)
-    try:
-
-        def read(y: int, n: int) -> np.ndarray:
-            try:
-                planes = f.channels(["R", "G", "B"], pixel_type, y0 + y, y0 + y + n - 1)
-                for k, plane in enumerate(planes):
-                    buf[:n, :, k] = np.frombuffer(plane, dtype).reshape(n, W)
-            except Exception as e:  # noqa: BLE001 - any decoder failure is a per-frame problem
-                raise LightstageError(
-                    f"{path}: corrupt EXR pixel data in rows {y}-{y + n - 1} ({_first_line(e)})"
-                ) from None
-            return buf[:n]
-
-        yield read
-    finally:
-        f.close()
-
-
-def _first_line(e: Exception) -> str:
-    text = str(e).strip().splitlines()
-    return text[0][:200] if text else type(e).__name__
-
-
-BAND_DECODERS = {"bands": _oiio_bands, "openexr-bands": _openexr_bands}
-
-
-def available_decoders() -> tuple[str, ...]:
-    """The DECODERS this installation can run (`openexr-bands` needs OpenEXR's InputFile)."""
-    return tuple(d for d in DECODERS if d != "openexr-bands" or _legacy_openexr() is not None)
 
 
 def _block_any(flags: np.ndarray, factor: int) -> np.ndarray:

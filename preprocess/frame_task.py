@@ -16,13 +16,7 @@ from lightstage.exr_header import prefetch_file
 from lightstage.frames import pixel_verdict
 from lightstage.ids import FrameId, ViewId
 from lightstage.preprocess.decoder_choice import process_chooser
-from lightstage.preprocess.downscale import (
-    BAND_DECODERS,
-    Downscaled,
-    decode_downscale_factors,
-    decode_raw,
-    downscale,
-)
+from lightstage.preprocess.downscale import Downscaled, decode_downscale_factors, decode_raw, downscale
 from lightstage.preprocess.jobs import (
     ChunkJob,
     ChunkRecord,
@@ -212,10 +206,8 @@ def decode_frame(
     factors = (DOWNSCALE, job.sfm_factor) if for_sfm and job.sfm_factor < DOWNSCALE else (DOWNSCALE,)
 
     def decode(decoder: str) -> list[Downscaled]:
-        if decoder in BAND_DECODERS:
-            return decode_downscale_factors(
-                raw, job.raw_size, job.cutoff, cfg.band_rows, factors, out, decoder
-            )
+        if decoder == "bands":
+            return decode_downscale_factors(raw, job.raw_size, job.cutoff, cfg.band_rows, factors, out)
         pixels = decode_raw(raw, job.raw_size)
         return [
             downscale(pixels, job.cutoff, cfg.band_rows, f, out if f == DOWNSCALE else None) for f in factors

@@ -55,7 +55,7 @@ class SfmSource:
     # light -> .npy a chunk task saved while it had the raw frame decoded (frame_task.decode_frame); a light
     # without one is decoded from its raw frame here
     cached: dict[int, str] = field(default_factory=dict)
-    decoder: str = "auto"  # "auto" or one of downscale.DECODERS
+    decoder: str = "auto"  # decoder_choice.CHOICES
     read_timeout_s: float = 120.0
 
 

@@ -24,8 +24,7 @@ from lightstage.frames import write_exr, write_exr_planes
 from lightstage.ids import FrameId, ViewId
 from lightstage.preprocess.config import PreprocessConfig
 from lightstage.preprocess.downscale import (
-    available_decoders,
-    decode_downscale_factors,
+    decode_downscale,
     decode_raw,
     downscale,
     downscale_reference,
@@ -80,34 +79,26 @@ def test_saturation_flags_any_of_sixteen_samples() -> None:
     np.testing.assert_array_equal(downscale(px.astype(np.float32), CUTOFF).saturated, expected)
 
 
-@pytest.mark.parametrize("decoder", ["bands", "openexr-bands"])
 @pytest.mark.parametrize(
     "dtype, channels, band_rows",
     [(np.float16, "RGB", 64), (np.float16, "RGBA", 24), (np.float32, "RGB", 40), (np.float16, "BGR", 16)],
 )
-def test_band_decoder_equals_whole_frame_decode(
-    tmp_path: Path, dtype, channels: str, band_rows: int, decoder: str
-) -> None:
-    """The stage's streaming decoders (OIIO's and OpenEXR's scanline bands) give exactly the whole-frame
-    decode + downscale, whatever the channel set/order and whether the band height divides the frame."""
-    if decoder not in available_decoders():
-        pytest.skip(f"{decoder} is not available with this OpenEXR")
+def test_band_decoder_equals_whole_frame_decode(tmp_path: Path, dtype, channels: str, band_rows: int) -> None:
+    """The stage's streaming decoder (OIIO scanline bands) gives exactly the whole-frame decode + downscale,
+    whatever the channel set/order and whether the band height divides the frame."""
     rng = np.random.default_rng(7)
     rgb = _frame(rng, 72, 96, dtype)
     planes = {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "A": np.ones_like(rgb[..., 0])}
     path = tmp_path / "raw.exr"
     write_exr(path, np.stack([planes[c] for c in channels], -1), half=dtype == np.float16, channels=channels)
-    streamed = decode_downscale_factors(path, (96, 72), CUTOFF, band_rows, (4,), decoder=decoder)[0]
+    streamed = decode_downscale(path, (96, 72), CUTOFF, band_rows=band_rows)
     whole = downscale(np.asarray(decode_raw(path, (96, 72))), CUTOFF)
     np.testing.assert_array_equal(streamed.rgb, whole.rgb)
     np.testing.assert_array_equal(streamed.saturated, whole.saturated)
     assert streamed.saturated.any()
 
 
-@pytest.mark.parametrize("decoder", ["bands", "openexr-bands"])
-def test_band_decoder_names_file_and_rows_of_corrupt_pixel_data(tmp_path: Path, decoder: str) -> None:
-    if decoder not in available_decoders():
-        pytest.skip(f"{decoder} is not available with this OpenEXR")
+def test_band_decoder_names_file_and_rows_of_corrupt_pixel_data(tmp_path: Path) -> None:
     rng = np.random.default_rng(8)
     path = tmp_path / "raw.exr"
     write_exr(path, _frame(rng, 344, 512), compression="zip")
@@ -116,9 +107,9 @@ def test_band_decoder_names_file_and_rows_of_corrupt_pixel_data(tmp_path: Path, 
     data[at : at + 200] = bytes(200)  # zeroed bytes inside a compressed chunk (zlib's checksum fails)
     path.write_bytes(bytes(data))
     with pytest.raises(LightstageError, match=r"raw\.exr: corrupt EXR pixel data in rows \d+-\d+"):
-        decode_downscale_factors(path, (512, 344), CUTOFF, 32, (4,), decoder=decoder)
+        decode_downscale(path, (512, 344), CUTOFF)
     with pytest.raises(LightstageError, match="resolution 512x344, expected 512x340"):
-        decode_downscale_factors(path, (512, 340), CUTOFF, 32, (4,), decoder=decoder)
+        decode_downscale(path, (512, 340), CUTOFF)
 
 
 @pytest.mark.parametrize("compression", ["zip", "piz", "rle", "none"])
