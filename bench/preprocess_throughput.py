@@ -323,7 +323,9 @@ def _worker_peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def run_stage(capture: Path, work_root: Path, workers: int, chunk_lights: int, compression: str) -> dict:
+def run_stage(
+    capture: Path, work_root: Path, workers: int, chunk_lights: int, compression: str, decoder: str = "auto"
+) -> dict:
     """Run the whole stage on a fresh LocalCluster of `workers` single-threaded processes."""
     from lightstage.pipelines.cluster import ClusterSettings, open_executor
     from lightstage.preprocess.config import PreprocessConfig
@@ -333,7 +335,7 @@ def run_stage(capture: Path, work_root: Path, workers: int, chunk_lights: int, c
     work = WorkDir.at(work_root)
     work.root.mkdir(parents=True)
     work.capture_pointer.write_text(str(capture))
-    config = PreprocessConfig(chunk_lights=chunk_lights, compression=compression)
+    config = PreprocessConfig(chunk_lights=chunk_lights, compression=compression, decoder=decoder)
     with open_executor(ClusterSettings(workers=workers, dashboard=""), verbose=False) as executor:
         load0 = os.getloadavg()[0]
         t = time.perf_counter()

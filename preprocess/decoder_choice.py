@@ -3,9 +3,14 @@
 The two decoders of `downscale.DECODERS` give identical outputs but their cost depends on the CPU and the
 kernel: OpenEXR's whole-frame decode was the floor on an AMD EPYC VM (OpenImageIO's bands 1.6-1.9x), while on
 an Intel Xeon VM its per-frame path cost 2.2x the floor (fresh 268 MB arrays: page faults, huge-page zeroing)
-and the bands 1.14x (docs/benchmarks.md). So with `auto` each worker process decodes its first frames with the
-two decoders in turn (`PROBE_FRAMES` each; real frames, nothing is decoded twice), times them in CPU seconds
-and uses the cheaper one from then on. The choice and the timings go into the chunk records and the report.
+and the bands 1.14x (docs/benchmarks.md). So with `auto` each worker process decodes its first frames with
+each decoder in turn, one run of `PROBE_FRAMES + 1` consecutive frames per decoder (real frames, nothing is
+decoded twice), times them in CPU seconds and uses the cheaper one from then on. The choice and the timings go
+into the chunk records and the report.
+
+Runs, not alternating frames: a worker reuses the freed frame block for the next whole-frame decode (the
+workers' malloc settings), and a band decode in between breaks that reuse, so alternating frames measured
+OpenEXR at up to 2x its steady cost (1.3-1.4 against 0.65-0.72 CPU-s on the AMD VM, docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -34,9 +39,13 @@ def choose(samples: dict[str, list[float]], probe_frames: int = PROBE_FRAMES) ->
     return min(DECODERS, key=lambda d: statistics.median(counted[d]))
 
 
-def next_to_probe(samples: dict[str, list[float]]) -> str:
-    """While probing, the decoder with the fewest samples (the first of DECODERS on a tie): frames alternate."""
-    return min(DECODERS, key=lambda d: len(samples.get(d, [])))
+def next_to_probe(samples: dict[str, list[float]], probe_frames: int = PROBE_FRAMES) -> str:
+    """While probing, the first decoder (in DECODERS order) that has not finished its run of `probe_frames + 1`
+    consecutive frames: each decoder is timed in its own steady state, not interleaved with the other."""
+    for d in DECODERS:
+        if len(samples.get(d, [])) < probe_frames + 1:
+            return d
+    return DECODERS[-1]
 
 
 class DecoderChooser:
@@ -57,7 +66,7 @@ class DecoderChooser:
             decoder = configured if configured != AUTO else self.chosen
             result = decode(decoder)
         else:
-            decoder = next_to_probe(self.samples)
+            decoder = next_to_probe(self.samples, self.probe_frames)
             cpu0 = self.clock()
             result = decode(decoder)
             self.samples[decoder].append(self.clock() - cpu0)

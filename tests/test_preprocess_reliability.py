@@ -55,7 +55,7 @@ def _copy(capture: Path, dst: Path) -> Path:
 def test_both_decoders_give_identical_frames_statistics_and_sfm_images(
     small_capture: Path, tmp_path: Path, sfm_max_side: int, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """openexr, bands and auto (which alternates the two on a fresh process's first frames) give byte-identical
+    """openexr, bands and auto (which times each in a run of a fresh process's first frames) give byte-identical
     outputs; every decoder saves the SfM frames while it has the raw frame decoded (no second decode)."""
     from lightstage.preprocess import decoder_choice, sfm_image
 
