@@ -41,15 +41,16 @@ def rng_state() -> dict[str, Any]:
 
 
 def set_rng_state(state: dict[str, Any]) -> None:
-    """Restore what `rng_state` captured."""
-    torch.set_rng_state(state["torch"])
+    """Restore what `rng_state` captured. A checkpoint loaded with a CUDA map_location holds these tensors on
+    the GPU, and torch takes RNG states only as CPU byte tensors, hence `.cpu()`."""
+    torch.set_rng_state(state["torch"].cpu())
     n = state["numpy"]
     np.random.set_state(  # noqa: NPY002
-        (n["kind"], n["keys"].numpy().astype(np.uint32), n["pos"], n["has_gauss"], n["cached"])
+        (n["kind"], n["keys"].cpu().numpy().astype(np.uint32), n["pos"], n["has_gauss"], n["cached"])
     )
     random.setstate(_lists_to_tuples(state["python"]))
     if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
+        torch.cuda.set_rng_state_all([s.cpu() for s in state["cuda"]])
 
 
 def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:

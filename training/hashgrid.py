@@ -88,7 +88,9 @@ class HashGridEncoding(nn.Module):
             stride = (res[:nd] + 1)[:, None]
             c = cell[:nd]
             base = c[:, 0] + stride * (c[:, 1] + stride * c[:, 2])  # (nd, N)
-            steps = CORNERS.to(x.device) @ torch.stack([torch.ones_like(stride), stride, stride * stride], 1)
+            powers = torch.stack([torch.ones_like(stride), stride, stride * stride], 1)  # (nd, 3, 1)
+            # an elementwise sum, not `@`: CUDA has no integer matmul ("baddbmm_cuda" not implemented for Long)
+            steps = (CORNERS.to(x.device)[None, :, :, None] * powers[:, None]).sum(2)  # (nd, 8, 1)
             idx[:, :nd] = base[None] + steps.permute(1, 0, 2)  # (8, nd, N)
         if nd < self.levels:
             # Only the low log2(T) bits of the spatial hash are used, and (v * P) mod T = (v * (P mod T))
