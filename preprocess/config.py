@@ -10,7 +10,7 @@ from typing import Any
 
 from lightstage.config import ConfigError, load
 from lightstage.frames import COMPRESSIONS
-from lightstage.preprocess.downscale import DECODERS
+from lightstage.preprocess.decoder_choice import CHOICES
 
 
 @dataclass(frozen=True)
@@ -118,8 +118,8 @@ class PreprocessConfig:
             raise bad("segmentation", "expected adaptive or lit_fraction")
         if self.compression not in COMPRESSIONS:
             raise bad("compression", f"expected one of {', '.join(COMPRESSIONS)}")
-        if self.decoder not in ("auto", *DECODERS):
-            raise bad("decoder", f"expected one of auto, {', '.join(DECODERS)}")
+        if self.decoder not in CHOICES:
+            raise bad("decoder", f"expected one of {', '.join(CHOICES)}")
         if not self.read_timeout_s > 0:
             raise bad("read_timeout_s", "expected a number of seconds > 0")
         if self.band_rows < 4 or self.band_rows % 4:

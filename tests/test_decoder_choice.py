@@ -73,3 +73,16 @@ def test_one_banded_decode_gives_every_factor_exactly(tmp_path: Path) -> None:
         np.testing.assert_array_equal(out.rgb, ref.rgb)
         np.testing.assert_array_equal(out.saturated, ref.saturated)
     assert outs[0].saturated.any()
+
+
+def test_config_rejects_an_unknown_decoder_naming_every_choice():
+    """`decoder` is checked against decoder_choice.CHOICES, and the message lists them."""
+    from lightstage.config import ConfigError
+    from lightstage.preprocess.config import PreprocessConfig
+    from lightstage.preprocess.decoder_choice import CHOICES
+
+    for name in CHOICES:
+        assert PreprocessConfig(decoder=name).decoder == name
+    with pytest.raises(ConfigError, match="decoder") as err:
+        PreprocessConfig.from_dict({"decoder": "openexr-bands"})
+    assert all(name in str(err.value) for name in CHOICES)
