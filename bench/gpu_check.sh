@@ -3,21 +3,35 @@
 # at equal batch (synthetic sphere), then time to PSNR of `fast` and `paper` on the simulator's `small` capture
 # (the demo's images), each under a wall-clock budget. Results go to $OUT (or ./gpu-check-out).
 #
-# Prepare once, here (the wheels the device image lacks; its python3 is 3.12 with torch, scipy, scikit-image,
-# opencv-python-headless, pyyaml, tqdm, matplotlib):
-#   echo /.whl/ >> .git/info/exclude
-#   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
-#     --platform manylinux_2_28_x86_64 --platform manylinux2014_x86_64 -d .whl \
-#     OpenEXR==3.5.3 OpenImageIO==3.2.2.0 pycolmap==4.2.1 dask distributed partd locket tblib zict tornado
-#   python3 -m pip wheel --no-deps -w .whl .    # lightstage itself, rebuilt after every change
-# (~52 MB with the 2 MB working tree: under the 64 MiB a call carries; pycolmap writes calibration's COLMAP export)
+# Prepare here, before the call: `bash bench/gpu_check.sh prepare` downloads the wheels the device image lacks
+# (its python3 is 3.12 with torch, scipy, scikit-image, opencv-python-headless, pyyaml, tqdm, matplotlib) into
+# .whl (ignored by git), builds lightstage's own wheel there and records a digest of the package sources beside it; rerun it after
+# every change: on the device the script refuses a lightstage wheel whose digest is not the working tree's, so a
+# device call never measures stale code. (~52 MB with the 2 MB working tree: under the 64 MiB a call carries;
+# pycolmap writes calibration's COLMAP export.)
 # then: device run, carry [".whl"], command "bash bench/gpu_check.sh", timeout_s 560.
 # Run on an H200 on 2026-12-04 in 300 s (MINUTES=1.5, then with nominal calibration; SfM adds its calibration:
-# 141 s on 2 cores, not yet timed there). A dry run on CPU (no wheels, lightstage already installed; ~10 minutes on
+# 141 s on 2 cores, run with 16 threads there by gpu_check.yaml, not yet timed). A dry run on CPU (no wheels, lightstage already installed; ~10 minutes on
 # 2 cores to the end of `fast`):
 #   DEVICE=cpu MINUTES=0.2 STEPS=40 BATCH=256 TP_BATCH=64 CHUNK=20 EVAL_EVERY=20 bash bench/gpu_check.sh
 # (on CPU the `paper` part, whose evaluation renders 18 full test images, takes far longer than the rest)
 set -euo pipefail
+PACKAGES="core capture preprocess calibration dataset interop training viewer pipelines simulator"
+# digest of what goes into the lightstage wheel (the package folders' sources, configs and viewer files)
+source_digest() {
+    find $PACKAGES -type f -not -path '*/__pycache__/*' \( -name '*.py' -o -name '*.yaml' -o -name '*.html' \
+        -o -name '*.js' -o -name '*.css' \) | LC_ALL=C sort | xargs sha256sum | sha256sum | cut -c1-16
+}
+if [ "${1:-}" = prepare ]; then
+    mkdir -p .whl && rm -f .whl/lightstage-*.whl .whl/lightstage.digest
+    python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+        --platform manylinux_2_28_x86_64 --platform manylinux2014_x86_64 -d .whl \
+        OpenEXR==3.5.3 OpenImageIO==3.2.2.0 pycolmap==4.2.1 dask distributed partd locket tblib zict tornado
+    python3 -m pip wheel -q --no-deps --no-build-isolation -w .whl .
+    source_digest > .whl/lightstage.digest
+    echo "prepared .whl ($(du -sh .whl | cut -f1)); lightstage sources $(cat .whl/lightstage.digest)"
+    exit 0
+fi
 OUT=${OUT:-gpu-check-out}
 DEVICE=${DEVICE:-cuda}
 MINUTES=${MINUTES:-1.5}      # training budget per config on the capture (the call must end in 9 minutes)
@@ -34,6 +48,14 @@ exec > >(tee "$OUT/gpu_check.log") 2>&1
 start=$(date +%s)
 lap() { echo "== $1 ($(( $(date +%s) - start )) s)"; }
 
+if ls .whl/lightstage-*.whl > /dev/null 2>&1; then
+    carried=$(cat .whl/lightstage.digest 2> /dev/null || echo none)
+    if [ "$carried" != "$(source_digest)" ]; then
+        echo "!! .whl/lightstage-*.whl was built from other sources (digest $carried, tree $(source_digest)):" \
+            "run 'bash bench/gpu_check.sh prepare' before the call"
+        exit 2
+    fi
+fi
 if [ -d .whl ] && ls .whl/*.whl > /dev/null 2>&1; then
     lap "install carried wheels and lightstage into /tmp/site"
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl
