@@ -26,7 +26,11 @@ class CalibrateConfig:
     max_features: int = 8192
     mask_erode_px: int = 2  # feature-mask erosion in processed pixels (scaled to the SfM images)
     sift_first_octave: int = -1  # -1: SIFT upsamples once (more, finer features; 0 halved the accuracy)
-    max_pair_angle_deg: float = 90.0  # match views whose nominal camera centres are within this angle
+    # Match views whose nominal camera centres are within this angle seen from the object (180 or 0: every
+    # pair; narrower left the demo's top camera row loose, docs/benchmarks.md), and each view with its nearest
+    # few whatever the angle, so a sparse stage (few cameras, one group) keeps a connected pair graph.
+    max_pair_angle_deg: float = 90.0
+    min_pair_neighbours: int = 8
     # World-frame gauge: the similarity that best fits the nominal rig's camera centres AND orientations, given
     # the stage's mounting tolerances (per axis); 0 deg: centres only (Umeyama). See docs/calibration.md.
     gauge_position_sigma_mm: float = 3.0
@@ -71,6 +75,8 @@ class CalibrateConfig:
             "probe_distance_sigma_mm",
             "probe_radius_sigma_mm",
             "gauge_rotation_sigma_deg",
+            "max_pair_angle_deg",
+            "min_pair_neighbours",
         ):
             require(getattr(self, key) >= 0, key, f"must be >= 0, got {getattr(self, key)!r}")
         require(

@@ -107,6 +107,7 @@ def _sfm_calibration(
         initial_max_reproj_px=10.0 * DOWNSCALE / f,
         refine_rounds=3 if f == DOWNSCALE else 4,
         max_pair_angle_deg=config.max_pair_angle_deg,
+        min_pair_neighbours=config.min_pair_neighbours,
         peak_threshold=config.peak_threshold,
         ransac_max_error_px=config.ransac_max_error_px,
         num_threads=config.num_threads,

@@ -67,8 +67,9 @@ class SfmOptions:
     domain_size_pooling: bool = False
     min_num_inliers: int = 12  # two-view verification
     # With initial poses, match only view pairs whose camera centres are within this angle seen from the world
-    # origin (on the simulator almost no verified matches span more than 90 deg); 0 or >= 180: exhaustive.
+    # origin, plus each view's `min_pair_neighbours` nearest (calibration.config); 0 or >= 180: exhaustive.
     max_pair_angle_deg: float = 90.0
+    min_pair_neighbours: int = 8
     verbose: bool = False  # copy COLMAP's log to stderr after each run (it is always written to the log file)
 
 
@@ -113,20 +114,27 @@ class SfmResult:
 
 
 def view_pairs(
-    poses: dict[ViewId, tuple[np.ndarray, np.ndarray]], views: list[ViewId], max_angle_deg: float
+    poses: dict[ViewId, tuple[np.ndarray, np.ndarray]],
+    views: list[ViewId],
+    max_angle_deg: float,
+    min_neighbours: int = 0,
 ) -> list[tuple[ViewId, ViewId]]:
     """Pairs of views whose camera centres (from `poses`, world-to-camera) are within `max_angle_deg` of each
-    other as seen from the world origin (the object): the pairs worth matching on a turntable stage."""
+    other as seen from the world origin (the object): the pairs worth matching on a turntable stage. Each view
+    also keeps its `min_neighbours` nearest views by that angle, however far, so a sparse stage (few cameras, one
+    group) still gets a connected pair graph."""
     centres = np.stack([-np.asarray(poses[v][0]).T @ np.asarray(poses[v][1]) for v in views])
     dirs = centres / np.linalg.norm(centres, axis=1, keepdims=True)
     cos = dirs @ dirs.T
-    limit = np.cos(np.deg2rad(max_angle_deg))
-    return [
-        (views[i], views[j])
-        for i in range(len(views))
-        for j in range(i + 1, len(views))
-        if cos[i, j] >= limit
-    ]
+    keep = cos >= np.cos(np.deg2rad(max_angle_deg))
+    k = min(min_neighbours, len(views) - 1)
+    if k > 0:
+        np.fill_diagonal(cos, -np.inf)
+        nearest = np.argsort(-cos, axis=1, kind="stable")[:, :k]
+        rows = np.repeat(np.arange(len(views)), k)
+        keep[rows, nearest.ravel()] = keep[nearest.ravel(), rows] = True
+    i, j = np.nonzero(np.triu(keep, 1))
+    return [(views[a], views[b]) for a, b in zip(i.tolist(), j.tolist(), strict=True)]
 
 
 def prepare_images(
@@ -286,7 +294,9 @@ def _run_sfm(
     verification.ransac.random_seed = options.seed
     pairs = None
     if initial_poses is not None and 0 < options.max_pair_angle_deg < 180:
-        pairs = view_pairs(initial_poses, sorted(views), options.max_pair_angle_deg)
+        pairs = view_pairs(
+            initial_poses, sorted(views), options.max_pair_angle_deg, options.min_pair_neighbours
+        )
     if pairs is None:
         pycolmap.match_exhaustive(
             db_path, matching_options=matching, verification_options=verification, device=pycolmap.Device.cpu

@@ -68,6 +68,8 @@ def test_config_rejects_unknown_keys_and_bad_types():
         CalibrateConfig.from_dict({"max_features": "many"})
     with pytest.raises(LightstageError, match="method"):
         CalibrateConfig.from_dict({"method": "magic"})
+    with pytest.raises(LightstageError, match="min_pair_neighbours: must be >= 0"):
+        CalibrateConfig.from_dict({"min_pair_neighbours": -1})
 
 
 def test_nominal_on_tiny_capture_and_exports(tiny_work: WorkDir, tiny_capture: Path):
@@ -228,6 +230,28 @@ def test_view_pairs_keep_nearby_views(tiny_capture: Path):
         for b in views[i + 1 :]:
             ca, cb = centre(a), centre(b)
             assert ((a, b) in kept) == (ca @ cb >= 0.0)
+
+
+def test_view_pairs_keep_the_nearest_views_of_a_sparse_stage():
+    """Four cameras on one ring, 70-115 deg apart: no pair is within 60 deg, yet each view keeps its
+    `min_neighbours` nearest, so the pair graph stays connected (1: a chain, 2: the ring, 3: every pair)."""
+    from lightstage.calibration.sfm import view_pairs
+    from lightstage.ids import ViewId
+
+    views, poses = [], {}
+    for k, deg in enumerate((0.0, 70.0, 155.0, 245.0)):
+        a = np.deg2rad(deg)
+        views.append(ViewId("000", f"cam{k:02d}"))
+        poses[views[-1]] = (np.eye(3), -np.array([np.cos(a), np.sin(a), 0.0]))
+
+    def pairs(k: int) -> set[tuple[int, int]]:
+        return {(views.index(a), views.index(b)) for a, b in view_pairs(poses, views, 60.0, k)}
+
+    assert pairs(0) == set()
+    assert pairs(1) == {(0, 1), (1, 2), (2, 3)}
+    assert pairs(2) == {(0, 1), (1, 2), (2, 3), (0, 3)}
+    assert len(pairs(3)) == len(pairs(10)) == 6
+    assert len(view_pairs(poses, views, 180.0)) == 6
 
 
 def test_colmap_image_names_are_rig_folders():
