@@ -20,6 +20,7 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from lightstage.dataset.shards import verify_shard
 from lightstage.errors import LightstageError
+from lightstage.npyio import load_npy
 from lightstage.records.shards import COMPOSITION, RAY_DTYPE, ZONE_NAMES, ZONES, load_manifest
 
 VERIFY_MODES = ("open", "all", "never")
@@ -143,7 +144,7 @@ class RayShardDataset(IterableDataset):
             verify_shard(self.root, rec)
             self._verified.add(shard)
         try:
-            arr = np.load(path, mmap_mode="r")
+            arr = load_npy(path, mmap_mode="r")
         except (OSError, ValueError) as e:
             raise LightstageError(f"{path}: unreadable shard ({e})") from None
         if arr.dtype != RAY_DTYPE or arr.shape != (rec["rays"],):

@@ -26,6 +26,7 @@ from lightstage.dataset.shard_rays import ViewTask, read_frame, write_view_chunk
 from lightstage.errors import LightstageError
 from lightstage.executor import Executor, local_executor
 from lightstage.ids import FrameId, ViewId
+from lightstage.npyio import load_npy
 from lightstage.records.processed import read_mask, read_zones
 from lightstage.records.shards import (
     COMPOSITION,
@@ -81,7 +82,7 @@ def write_shard(task: ShardTask) -> dict[str, Any]:
     offsets = np.zeros(len(ZONES), np.int64)  # start of each chunk's zone block in the global pool
     gathered: list[list[np.ndarray]] = [[] for _ in ZONES]
     for chunk, counts in zip(task.chunks, task.chunk_counts, strict=True):
-        data = np.load(chunk, mmap_mode="r")
+        data = load_npy(chunk, mmap_mode="r")
         starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
         for zi in range(len(ZONES)):
             a, n = int(offsets[zi]), counts[zi]

@@ -27,6 +27,7 @@ from lightstage.cameras import opengl_c2w_to_opencv
 from lightstage.errors import LightstageError
 from lightstage.ids import FrameId, ViewId
 from lightstage.interop.ingest import ImportedDataset, SourceFrame, image_size, load_json
+from lightstage.npyio import load_npy
 
 LIGHT_TABLE = "light_pos.npy"
 IMAGE_EXTS = (".JPG", ".jpg", ".jpeg", ".png")
@@ -51,7 +52,7 @@ def find_light_table(obj: Path, given: Path | None) -> Path:
 def load_light_table(path: Path) -> np.ndarray:
     """(L, 3) light positions from a .npy file, or one error line naming it."""
     try:
-        table = np.load(path, allow_pickle=False)
+        table = load_npy(path)
     except (OSError, ValueError) as e:
         raise LightstageError(f"{path}: not a readable .npy array ({e})") from None
     if table.ndim != 2 or table.shape[1] != 3 or not np.all(np.isfinite(table)):

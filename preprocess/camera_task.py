@@ -18,6 +18,7 @@ import numpy as np
 from lightstage.atomic import write_json_atomic
 from lightstage.errors import LightstageError
 from lightstage.ids import ViewId
+from lightstage.npyio import load_npz
 from lightstage.preprocess.config import PreprocessConfig
 from lightstage.preprocess.jobs import VIEW_RECORD, ViewRecord, camera_marker
 from lightstage.workdir import WorkDir
@@ -76,9 +77,9 @@ def finalise_camera(job: CameraJob) -> dict[str, ViewRecord]:
         vdir = work.view_dir(ViewId(g, job.camera))
         try:
             records[g] = ViewRecord(**json.loads((vdir / VIEW_RECORD).read_text()))
-            with np.load(vdir / "stats.npz", allow_pickle=False) as d:
-                means[g], masks[g] = d["mean"].astype(np.float32), d["mask"].astype(bool)
-                inclusive[g] = d["mask_inclusive"].astype(bool) if "mask_inclusive" in d.files else masks[g]
+            d = load_npz(vdir / "stats.npz")
+            means[g], masks[g] = d["mean"].astype(np.float32), d["mask"].astype(bool)
+            inclusive[g] = d["mask_inclusive"].astype(bool) if "mask_inclusive" in d else masks[g]
         except (OSError, ValueError, TypeError, KeyError) as e:
             raise LightstageError(f"{vdir}: cannot read the view's outputs ({e}); rerun to redo it") from None
     # only views of the same frames are comparable (a bad frame in one group changes its mean)

@@ -15,6 +15,7 @@ from lightstage.errors import EnvironmentFault, LightstageError, is_environment_
 from lightstage.exr_header import prefetch_file
 from lightstage.frames import pixel_verdict
 from lightstage.ids import FrameId, ViewId
+from lightstage.npyio import load_npz
 from lightstage.preprocess.decoder_choice import process_chooser
 from lightstage.preprocess.downscale import Downscaled, decode_downscale_factors, decode_raw, downscale
 from lightstage.preprocess.jobs import (
@@ -48,8 +49,7 @@ def process_chunk(job: ChunkJob) -> ChunkRecord:
     partial = partial_path(work, view, job.index, cfg.stats_key())
     if partial.is_file():
         try:
-            with np.load(partial, allow_pickle=False) as d:
-                records = json.loads(str(d["records"]))
+            records = json.loads(str(load_npz(partial, ["records"])["records"]))
             return ChunkRecord(
                 job.group,
                 job.camera,

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from lightstage.errors import LightstageError
+from lightstage.npyio import load_npy
 from lightstage.workdir import DOWNSCALE
 
 
@@ -74,7 +75,7 @@ def sfm_mean_image(src: SfmSource, trim: bool) -> np.ndarray:
         if src.factor == DOWNSCALE:
             rgb, _ = read_processed(src.processed_paths[light], size)
         elif light in src.cached and Path(src.cached[light]).is_file():
-            rgb = np.load(src.cached[light], allow_pickle=False)
+            rgb = load_npy(src.cached[light])
             if rgb.shape != (size[1], size[0], 3) or rgb.dtype != np.float32:
                 raise LightstageError(f"{src.cached[light]}: SfM frame is {rgb.dtype} {rgb.shape}")
         else:

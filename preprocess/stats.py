@@ -18,6 +18,7 @@ import numpy as np
 
 from lightstage.atomic import atomic_path
 from lightstage.errors import LightstageError
+from lightstage.npyio import load_npz
 from lightstage.tonemap import LUMA, luminance
 
 # The brightness ladder: per pixel, how many unsaturated frames are brighter than cutoff x 2^-k for each k
@@ -185,8 +186,7 @@ class ViewStats:
         """Read a file written by `save` (its extra arrays land in `extras`)."""
         path = Path(path)
         try:
-            with np.load(path, allow_pickle=False) as d:
-                data = {k: d[k] for k in d.files}
+            data = load_npz(path)
         except (OSError, ValueError) as e:
             raise LightstageError(f"{path}: unreadable statistics ({e})") from None
         try:

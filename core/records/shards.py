@@ -19,6 +19,7 @@ from lightstage.atomic import write_json_atomic
 from lightstage.cameras import PinholeCamera
 from lightstage.errors import LightstageError
 from lightstage.ids import FrameId
+from lightstage.npyio import load_npz
 from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND
 
 SHARD_FORMAT_VERSION = 1
@@ -109,29 +110,29 @@ def read_test_image(path: Path) -> TestImage:
     """One shards/test/*.npz (rgb, saturated, K, R, t, dist, width, height, light_direction; mask and the
     frame's group/camera/light when written) as a TestImage."""
     try:
-        with np.load(path) as z:
-            mask = np.array(z["mask"], bool) if "mask" in z.files else None
-            frame = (
-                FrameId(str(z["group"]), str(z["camera"]), int(z["light"]))
-                if {"group", "camera", "light"} <= set(z.files)
-                else None
-            )
-            cam = PinholeCamera(
-                np.array(z["K"], np.float64),
-                np.array(z["R"], np.float64),
-                np.array(z["t"], np.float64).reshape(3),
-                int(z["width"]),
-                int(z["height"]),
-                np.array(z["dist"], np.float64).reshape(-1),
-            )
-            return TestImage(
-                path.stem,
-                cam,
-                np.array(z["light_direction"], np.float64).reshape(3),
-                np.array(z["rgb"], np.float32),
-                np.array(z["saturated"], bool),
-                mask,
-                frame,
-            )
+        z = load_npz(path)
+        mask = np.array(z["mask"], bool) if "mask" in z else None
+        frame = (
+            FrameId(str(z["group"]), str(z["camera"]), int(z["light"]))
+            if {"group", "camera", "light"} <= z.keys()
+            else None
+        )
+        cam = PinholeCamera(
+            np.array(z["K"], np.float64),
+            np.array(z["R"], np.float64),
+            np.array(z["t"], np.float64).reshape(3),
+            int(z["width"]),
+            int(z["height"]),
+            np.array(z["dist"], np.float64).reshape(-1),
+        )
+        return TestImage(
+            path.stem,
+            cam,
+            np.array(z["light_direction"], np.float64).reshape(3),
+            np.array(z["rgb"], np.float32),
+            np.array(z["saturated"], bool),
+            mask,
+            frame,
+        )
     except (OSError, ValueError, KeyError) as e:
         raise LightstageError(f"{path}: unreadable test image ({e})") from e
