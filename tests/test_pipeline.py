@@ -43,6 +43,12 @@ def outputs(work: Path) -> dict[str, bytes]:
     }
 
 
+def finished_frames(folder: Path) -> int:
+    """Fake frames written so far: visible names only (a killed writer leaves a hidden atomic_path temporary,
+    which pathlib's glob would count)."""
+    return sum(1 for p in folder.glob("*.txt") if not p.name.startswith("."))
+
+
 def statuses(results) -> dict[str, str]:
     return {r.stage: r.status for r in results}
 
@@ -214,7 +220,7 @@ def test_worker_killed_mid_run_completes_with_identical_outputs(
     frames = work.root / "preprocess" / "frames"
     with dask_executor(workers=2, dashboard="", verbose=False) as executor:
         pids = executor.worker_pids()
-        with kill_process_when(pids[0], lambda: len(list(frames.glob("*.txt"))) >= 2) as killer:
+        with kill_process_when(pids[0], lambda: finished_frames(frames) >= 2) as killer:
             res = run_pipeline(
                 work,
                 fake_config(preprocess={"delay": 0.4}),
@@ -258,12 +264,12 @@ def test_whole_run_killed_resumes_to_identical_outputs(tmp_path: Path) -> None:
     )
     frames = work / "preprocess" / "frames"
     deadline = time.time() + 120
-    while time.time() < deadline and len(list(frames.glob("*.txt"))) < 4 and proc.poll() is None:
+    while time.time() < deadline and finished_frames(frames) < 4 and proc.poll() is None:
         time.sleep(0.02)
     assert proc.poll() is None, "the run finished before it could be killed"
     os.killpg(proc.pid, signal.SIGKILL)  # the CLI and its dask workers, mid-stage
     proc.wait()
-    done_before = len(list(frames.glob("*.txt")))
+    done_before = finished_frames(frames)
     assert 4 <= done_before < 15
     assert read_record(WorkDir.at(work), "preprocess") is None
 

@@ -138,7 +138,10 @@ def run_calibrate_nothing(
 
 
 def _done_values(folder: Path) -> list[int]:
-    return [int(p.read_text()) for p in sorted(folder.glob("*.txt"))]
+    """The finished frames' values: visible names only, as a real stage reads its outputs by name (a worker
+    killed mid-write leaves its atomic_path temporary, `.<stem>.<pid>.<random>.tmp.txt`, empty; pathlib's glob
+    matches dot files, which failed test_worker_killed_mid_run_completes_with_identical_outputs once in CI)."""
+    return [int(p.read_text()) for p in sorted(folder.glob("*.txt")) if not p.name.startswith(".")]
 
 
 def run_calibrate(
@@ -152,7 +155,9 @@ def run_calibrate(
 def run_split(
     work: WorkDir, config: FakeConfig, executor: Executor | None = None, progress: bool = True
 ) -> dict:
-    names = sorted(p.name for p in (work.preprocess_dir / "frames").glob("*.txt"))
+    names = sorted(
+        p.name for p in (work.preprocess_dir / "frames").glob("*.txt") if not p.name.startswith(".")
+    )
     split = {"train": names[::2], "test": names[1::2]}
     write_json_atomic(work.split, split)
     return _report(work, "split", counts={k: len(v) for k, v in split.items()})
