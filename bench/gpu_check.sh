@@ -5,14 +5,14 @@
 #
 # Prepare here, before the call: `bash bench/gpu_check.sh prepare` downloads the wheels the device image lacks
 # (its python3 is 3.12 with torch, scipy, scikit-image, opencv-python-headless, pyyaml, tqdm, matplotlib) into
-# .whl (ignored by git), builds lightstage's own wheel there and records a digest of the package sources beside it; rerun it after
-# every change: on the device the script refuses a lightstage wheel whose digest is not the working tree's, so a
-# device call never measures stale code. (~52 MB with the 2 MB working tree: under the 64 MiB a call carries;
-# pycolmap writes calibration's COLMAP export.)
+# .whl (ignored by git), builds lightstage's own wheel there and records a digest of the package sources beside
+# it. Rerun it after every change: on the device the script refuses a lightstage wheel whose digest is not the
+# working tree's, so a call never measures stale code. (~52 MB with the 2 MB working tree: under the 64 MiB a
+# call carries; pycolmap writes calibration's COLMAP export.)
 # then: device run, carry [".whl"], command "bash bench/gpu_check.sh", timeout_s 560.
 # Run on an H200 on 2026-12-04 in 300 s (MINUTES=1.5, then with nominal calibration; SfM adds its calibration:
-# 141 s on 2 cores, run with 16 threads there by gpu_check.yaml, not yet timed). A dry run on CPU (no wheels, lightstage already installed; ~10 minutes on
-# 2 cores to the end of `fast`):
+# 141 s on 2 cores, run with 16 threads there by gpu_check.yaml, not yet timed). A dry run on CPU (no wheels,
+# lightstage already installed; 450 s on 2 cores to the end of `fast` with CONFIGS=fast THROUGHPUT=0):
 #   DEVICE=cpu MINUTES=0.2 STEPS=40 BATCH=256 TP_BATCH=64 CHUNK=20 EVAL_EVERY=20 bash bench/gpu_check.sh
 # (on CPU the `paper` part, whose evaluation renders 18 full test images, takes far longer than the rest)
 set -euo pipefail
@@ -50,8 +50,9 @@ lap() { echo "== $1 ($(( $(date +%s) - start )) s)"; }
 
 if ls .whl/lightstage-*.whl > /dev/null 2>&1; then
     carried=$(cat .whl/lightstage.digest 2> /dev/null || echo none)
-    if [ "$carried" != "$(source_digest)" ]; then
-        echo "!! .whl/lightstage-*.whl was built from other sources (digest $carried, tree $(source_digest)):" \
+    tree=$(source_digest)
+    if [ "$carried" != "$tree" ]; then
+        echo "!! .whl/lightstage-*.whl was built from other sources (digest $carried, tree $tree):" \
             "run 'bash bench/gpu_check.sh prepare' before the call"
         exit 2
     fi

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import threading
+import zipfile
 from collections.abc import Iterable
 
 import numpy as np
@@ -19,9 +20,14 @@ _HEADER_LOCK = threading.Lock()
 
 
 def load_npz(path: str | os.PathLike[str], keys: Iterable[str] | None = None) -> dict[str, np.ndarray]:
-    """The arrays of an .npz file (all, or the named `keys`), read into memory; no pickles."""
-    with _HEADER_LOCK, np.load(path, allow_pickle=False) as z:
-        return {k: z[k] for k in (z.files if keys is None else keys)}
+    """The arrays of an .npz file (all, or the named `keys`), read into memory; no pickles. A damaged archive
+    raises ValueError, as a damaged .npy does, so callers' (OSError, ValueError) handlers name the file
+    (zipfile's BadZipFile is neither)."""
+    try:
+        with _HEADER_LOCK, np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in (z.files if keys is None else keys)}
+    except zipfile.BadZipFile as e:
+        raise ValueError(f"not a readable .npz archive ({e})") from None
 
 
 def load_npy(path: str | os.PathLike[str], mmap_mode: str | None = None) -> np.ndarray:

@@ -73,3 +73,19 @@ def test_pickles_are_refused(tmp_path: Path):
     with pytest.raises(ValueError, match="pickle"):
         npyio.load_npy(tmp_path / "o.npy")
     assert not npyio._HEADER_LOCK.locked()  # released on errors too
+
+
+def test_a_damaged_npz_is_a_value_error_that_callers_name(tmp_path: Path):
+    """A truncated archive raised zipfile.BadZipFile, which the loaders' (OSError, ValueError) handlers let
+    through as a traceback; now ValueError, and e.g. the statistics loader names the file."""
+    from lightstage.errors import LightstageError
+    from lightstage.preprocess.stats import ViewStats
+
+    np.savez(tmp_path / "full.npz", a=np.zeros(1000))
+    data = (tmp_path / "full.npz").read_bytes()
+    (tmp_path / "cut.npz").write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match="not a readable .npz archive"):
+        npyio.load_npz(tmp_path / "cut.npz")
+    assert not npyio._HEADER_LOCK.locked()
+    with pytest.raises(LightstageError, match=r"cut\.npz: unreadable statistics"):
+        ViewStats.load(tmp_path / "cut.npz")
