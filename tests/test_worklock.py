@@ -59,6 +59,29 @@ def snapshot(root: Path) -> dict[str, tuple[int, int]]:
     return {str(p): (p.lstat().st_size, p.lstat().st_mtime_ns) for p in sorted(root.rglob("*"))}
 
 
+def group_states(pgid: int) -> list[str]:
+    """The scheduler state letter of every live process in process group `pgid` (Linux /proc)."""
+    states = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):  # exited meanwhile
+            continue
+        if int(fields[2]) == pgid:
+            states.append(fields[0])
+    return states
+
+
+def stop_group(pgid: int, timeout_s: float = 30.0) -> None:
+    """SIGSTOP a process group and return once every member has stopped: kill() returns before the targets
+    stop (a write already in the kernel still completes), so a snapshot taken at once can see a file grow."""
+    os.killpg(pgid, signal.SIGSTOP)
+    deadline = time.monotonic() + timeout_s
+    while any(state not in "TtZX" for state in group_states(pgid)):
+        assert time.monotonic() < deadline, f"process group {pgid} did not stop: {group_states(pgid)}"
+        time.sleep(0.01)
+
+
 def start_holder(work: Path) -> subprocess.Popen:
     """A process holding WORK's lock (until killed); returns once it holds it."""
     proc = subprocess.Popen([sys.executable, "-c", HOLDER, str(work)], stdout=subprocess.PIPE, text=True)
@@ -184,17 +207,21 @@ def test_second_run_is_refused_and_the_first_ends_identical_to_a_reference(
 ) -> None:
     work = tmp_path / "work"
     cmd = [*run_command(tiny_capture, work, pipeline_config), "--quiet"]
-    first = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    first = subprocess.Popen(
+        cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
+    )
     try:
         holds = lambda: (h := read_holder(work)) is not None and h.pid == first.pid  # noqa: E731
         wait_for(lambda: holds() and (work / "preprocess").is_dir(), first)  # mid-preprocess
-        os.kill(first.pid, signal.SIGSTOP)  # hold the first still while the second tries
+        # Hold the first still while the second tries: its whole process group (the stages' pool workers
+        # write too), and only once all of it has stopped (once a temporary grew between the snapshots).
+        stop_group(first.pid)
         try:
             before = snapshot(work)
             second = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
             assert snapshot(work) == before  # the second wrote nothing (no temp, no cleanup)
         finally:
-            os.kill(first.pid, signal.SIGCONT)
+            os.killpg(first.pid, signal.SIGCONT)
         assert second.returncode == 2
         (line,) = error_lines(second.stderr)
         assert line.startswith(f"lightstage: error: {work}: work directory in use")
