@@ -176,6 +176,10 @@ def test_transparent_field_and_bad_extension_are_errors(tmp_path):
         with pytest.raises(LightstageError, match=r"\.ply"):
             run_mesh(WorkDir.at(tmp_path), MeshConfig(resolution=8, out=str(tmp_path / bad)), progress=False,
                      model=model)  # fmt: skip
+    for level in (0.0, -5.0, float("nan")):  # no surface can lie there: refused before the grid is evaluated
+        with pytest.raises(LightstageError, match="level > 0"):
+            run_mesh(WorkDir.at(tmp_path), MeshConfig(resolution=8, threshold=level, out=str(tmp_path / "m.ply")),
+                     progress=False, model=model)  # fmt: skip
     assert model.queries == 0  # refused before any density query
     # an explicit threshold still overrides the rule
     summary = run_mesh(

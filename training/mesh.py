@@ -238,6 +238,11 @@ def run_mesh(
     from lightstage.atomic import write_json_atomic
 
     out = check_out_path(config.out)  # before any work
+    if config.threshold is not None and not float(config.threshold) > 0:  # also refuses NaN
+        raise LightstageError(
+            f"density threshold {config.threshold:g}: the density is never negative, so a surface needs a "
+            "level > 0 (leave --threshold out to take it from the field's transmittance)"
+        )
     t0 = time.perf_counter()
     device = pick_device(config.device)
     if model is None:
