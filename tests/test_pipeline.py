@@ -44,9 +44,8 @@ def outputs(work: Path) -> dict[str, bytes]:
 
 
 def finished_frames(folder: Path) -> int:
-    """Fake frames written so far: visible names only (a killed writer leaves a hidden atomic_path temporary,
-    which pathlib's glob would count)."""
-    return sum(1 for p in folder.glob("*.txt") if not p.name.startswith("."))
+    """Fake frames written so far (not a killed writer's atomic_path temporary)."""
+    return len(fakes.finished_outputs(folder))
 
 
 def statuses(results) -> dict[str, str]:

@@ -15,7 +15,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-from lightstage.atomic import write_json_atomic, write_text_atomic
+from lightstage.atomic import is_temp_name, write_json_atomic, write_text_atomic
 from lightstage.errors import LightstageError
 from lightstage.executor import Executor, LoopExecutor, TaskFailure
 from lightstage.workdir import WorkDir
@@ -137,11 +137,16 @@ def run_calibrate_nothing(
     return _report(work, "calibrate", counts={})
 
 
+def finished_outputs(folder: Path) -> list[Path]:
+    """The fake frames written so far, by name, as a real stage reads its outputs: not the atomic_path temporary
+    a worker killed mid-write leaves (`.<stem>.<pid>.<random>.tmp.txt`, empty), which pathlib's glob matches
+    (it failed test_worker_killed_mid_run_completes_with_identical_outputs once in CI)."""
+    return [p for p in sorted(folder.glob("*.txt")) if not is_temp_name(p.name)]
+
+
 def _done_values(folder: Path) -> list[int]:
-    """The finished frames' values: visible names only, as a real stage reads its outputs by name (a worker
-    killed mid-write leaves its atomic_path temporary, `.<stem>.<pid>.<random>.tmp.txt`, empty; pathlib's glob
-    matches dot files, which failed test_worker_killed_mid_run_completes_with_identical_outputs once in CI)."""
-    return [int(p.read_text()) for p in sorted(folder.glob("*.txt")) if not p.name.startswith(".")]
+    """The finished frames' values."""
+    return [int(p.read_text()) for p in finished_outputs(folder)]
 
 
 def run_calibrate(
@@ -155,9 +160,7 @@ def run_calibrate(
 def run_split(
     work: WorkDir, config: FakeConfig, executor: Executor | None = None, progress: bool = True
 ) -> dict:
-    names = sorted(
-        p.name for p in (work.preprocess_dir / "frames").glob("*.txt") if not p.name.startswith(".")
-    )
+    names = [p.name for p in finished_outputs(work.preprocess_dir / "frames")]
     split = {"train": names[::2], "test": names[1::2]}
     write_json_atomic(work.split, split)
     return _report(work, "split", counts={k: len(v) for k, v in split.items()})
