@@ -4,7 +4,9 @@ numpy parses every array header with `ast.literal_eval`, and CPython up to 3.12 
 recursion depth per interpreter, not per thread: two threads parsing at the same moment (a dask worker with two
 threads loading statistics) can fail with `SystemError: AST constructor recursion depth mismatch` (seen in the
 suite on Python 3.11.7; python/cpython#106905 and the reports linked there). Every load in lightstage goes through
-this module, which parses headers under one process-wide lock (tests/test_npyio.py keeps it that way).
+this module, which holds one process-wide lock while numpy parses headers: for an .npy, the open (a memory map's
+data is read later, unlocked); for an .npz, the whole read, since the archive parses each member's header when the
+member is accessed (so keep .npz files small; tests/test_npyio.py keeps every load here).
 """
 
 from __future__ import annotations
