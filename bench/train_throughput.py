@@ -3,10 +3,13 @@ ones named) on the synthetic sphere problem, on CPU and, when present, on CUDA.
 
 For configs with an occupancy grid (`fast`) the grid is set from the analytic sphere (what training converges
 to) so empty-space skipping is measured as it behaves after warm-up; `--no-occupancy-prefill` measures the
-all-occupied start. Every config runs at the same batch, so the ratios printed at the end compare equal work.
+all-occupied start. Every config runs at the same batch, so the ratios printed at the end compare equal work. On CPU the hash-grid
+configs run with both lookups in the same run, the fused numba kernels (the default) and the PyTorch path
+(`--cpu-lookups` picks), and the ratio of the two is printed. glibc's malloc is set as training sets it
+(`lightstage.malloc`).
 
     python bench/train_throughput.py [--configs paper paper-lite fast tiny] [--batch 4096] [--steps 5]
-                                     [--devices cpu cuda]
+                                     [--devices cpu cuda] [--cpu-lookups numba torch]
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ import time
 import torch
 from support.synthetic import SyntheticSphere
 
+from lightstage.malloc import keep_large_blocks
+from lightstage.training import hashgrid_cpu
 from lightstage.training.config import BUILTIN_CONFIGS, load_config
 from lightstage.training.losses import measured_epsilon, total_loss
 from lightstage.training.model import RelightModel
@@ -39,8 +44,9 @@ def prefill_occupancy(model: RelightModel, src: SyntheticSphere) -> None:
     occ.ready.fill_(True)
 
 
-def measure(name: str, device: str, batch: int, steps: int, warmup: int, prefill: bool) -> dict:
+def measure(name: str, device: str, batch: int, steps: int, warmup: int, prefill: bool, lookup: str) -> dict:
     cfg = load_config(name)
+    hashgrid_cpu.set_enabled(lookup == "numba")
     src = SyntheticSphere(batch_size=batch)
     dev = torch.device(device)
     model = RelightModel(cfg.model, src.centre, src.scale).to(dev)
@@ -81,6 +87,7 @@ def measure(name: str, device: str, batch: int, steps: int, warmup: int, prefill
         "precision": cfg.optim.precision if dev.type == "cuda" else "fp32",
         "occupancy_prefilled": bool(model.occupancy is not None and prefill),
         "threads": torch.get_num_threads(),
+        "lookup": lookup,
     }
 
 
@@ -100,18 +107,35 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=1)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--no-occupancy-prefill", action="store_true")
+    ap.add_argument(
+        "--cpu-lookups",
+        nargs="+",
+        choices=["numba", "torch"],
+        default=["numba", "torch"] if hashgrid_cpu.available() else ["torch"],
+        help="hash-grid lookups to measure on CPU (default: both)",
+    )
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    keep_large_blocks()
     results = []
     for device in args.devices:
         gpu = device == "cuda"
         batch = args.batch or (4096 if gpu else 1024)
         steps = args.steps or (20 if gpu else 3)
         for name in args.configs:
-            r = measure(name, device, batch, steps, args.warmup, not args.no_occupancy_prefill)
-            print(json.dumps(r), flush=True)
-            results.append(r)
-    by = {(r["device"], r["config"]): r["rays_per_s"] for r in results}
+            hashgrid = load_config(name).model.field == "hashgrid"
+            for lookup in args.cpu_lookups if device == "cpu" and hashgrid else args.cpu_lookups[:1]:
+                r = measure(name, device, batch, steps, args.warmup, not args.no_occupancy_prefill, lookup)
+                print(json.dumps(r), flush=True)
+                results.append(r)
+    by: dict[tuple[str, str], float] = {}
+    for r in results:  # ratios between configs at the first lookup measured (the default)
+        by.setdefault((r["device"], r["config"]), r["rays_per_s"])
+    pairs = {(r["config"], r["lookup"]): r["rays_per_s"] for r in results if r["device"] == "cpu"}
+    for name in args.configs:
+        if (name, "numba") in pairs and (name, "torch") in pairs:
+            ratio = pairs[(name, "numba")] / pairs[(name, "torch")]
+            print(f"cpu: {name}: fused numba lookup {ratio:.2f}x the PyTorch lookup")
     for device in args.devices:
         if (device, "paper") in by:
             ratios = ", ".join(

@@ -15,20 +15,7 @@ from typing import Any
 
 from lightstage.errors import EnvironmentFault, LightstageError
 from lightstage.executor import SINGLE_THREAD_ENV, Executor, task_name
-
-# glibc malloc settings for dask worker processes, in their environment before they start (dask's
-# `pre-spawn-environ`). Dask's MALLOC_TRIM_THRESHOLD_=64 KiB freezes glibc's mmap threshold at 128 KiB, so every
-# multi-MB band buffer of the per-frame work became a fresh page-faulting mmap (~20% more CPU per raw frame in
-# preprocess, docs/benchmarks.md). OpenEXR's whole-frame decode (268 MB at 8192x5464 half RGB, 537 MB float)
-# was one too: blocks up to 1 GiB come from the heap and up to 1 GiB of free heap is kept, in one arena (tasks
-# run in a worker thread, whose own arena cannot hold such blocks and maps them afresh): the kernel's share of
-# a decode fell from 0.10-0.14 to 0.02-0.03 s per frame on the AMD EPYC VM. Peak memory is unchanged (the
-# freed frame is the next frame's buffer).
-WORKER_MALLOC_ENV = {
-    "MALLOC_ARENA_MAX": "1",
-    "MALLOC_MMAP_THRESHOLD_": str(1 << 30),
-    "MALLOC_TRIM_THRESHOLD_": str(1 << 30),
-}
+from lightstage.malloc import WORKER_MALLOC_ENV
 
 
 class _DaskSession:

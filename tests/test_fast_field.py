@@ -7,6 +7,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from lightstage.training import hashgrid_cpu
 from lightstage.training.config import load_config
 from lightstage.training.encoding import positional_encoding
 from lightstage.training.hashgrid import CORNERS, PRIMES, HashGridEncoding
@@ -34,10 +35,22 @@ def _reference(enc: HashGridEncoding, x: torch.Tensor) -> torch.Tensor:
     return torch.cat(out, dim=-1)
 
 
-@pytest.mark.parametrize("levels,log2_t,max_res", [(16, 19, 2048), (8, 17, 512), (4, 10, 64)])
-def test_vectorised_encoding_equals_reference(levels, log2_t, max_res):
+@pytest.mark.parametrize("kernel", ["numba", "torch"])
+@pytest.mark.parametrize(
+    "levels,features,log2_t,max_res",
+    [(16, 2, 19, 2048), (8, 2, 17, 512), (4, 2, 10, 64), (3, 1, 10, 64), (3, 4, 8, 32)],
+)
+def test_vectorised_encoding_equals_reference(levels, features, log2_t, max_res, kernel):
+    """Both CPU paths: the fused numba kernels (the default) and the PyTorch one (CUDA's, and the fallback)."""
+    old = hashgrid_cpu.set_enabled(kernel == "numba")
+    try:
+        _check_against_reference(HashGridEncoding(levels, features, log2_t, 16, max_res))
+    finally:
+        hashgrid_cpu.set_enabled(old)
+
+
+def _check_against_reference(enc: HashGridEncoding) -> None:
     torch.manual_seed(0)
-    enc = HashGridEncoding(levels, 2, log2_t, 16, max_res)
     with torch.no_grad():
         enc.tables.normal_()
     x = torch.rand(2000, 3) * 2 - 1

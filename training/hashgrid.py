@@ -3,15 +3,18 @@
 Level l has resolution floor(base * b^l) with b chosen so the last level reaches `max_resolution`; coarse levels
 whose (res+1)^3 vertices fit the table are indexed densely, finer ones through the spatial hash
 (x*1 xor y*2654435761 xor z*805459861) mod T. Features are trilinearly interpolated from the 8 cell corners.
+On CPU the lookup runs in the fused kernels of `hashgrid_cpu`; the PyTorch path below is CUDA's and the reference.
 """
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from torch import nn
 
+from lightstage.training import hashgrid_cpu
 from lightstage.training.config import ModelConfig
 from lightstage.training.encoding import encoded_dim, positional_encoding
 from lightstage.training.heads import density_activation, exp_head
@@ -72,12 +75,22 @@ class HashGridEncoding(nn.Module):
         self.sizes = [min((r + 1) ** 3, self.table_size) for r in resolutions]
         self.tables = nn.Parameter(torch.empty(levels, self.table_size, features).uniform_(-1e-4, 1e-4))
         self.output_dim = levels * features
+        # the fused CPU kernels' per-level constants (hashgrid_cpu)
+        self._kernel_args = (
+            np.asarray(resolutions, dtype=np.float32),
+            np.asarray(resolutions, dtype=np.int64),
+            np.asarray(self.dense, dtype=np.bool_),
+            np.asarray([p & (self.table_size - 1) for p in PRIMES], dtype=np.int64),
+        )
         if max(resolutions) + 1 >= 2**31 // self.table_size:
             raise ValueError("hash grid: max_resolution * table size must stay below 2^31")
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         n = len(x)
-        u = ((x.float() + 1.0) * 0.5).clamp(0.0, 1.0).t()  # (3, N)
+        u = ((x.float() + 1.0) * 0.5).clamp(0.0, 1.0)
+        if x.device.type == "cpu" and self.tables.dtype == torch.float32 and hashgrid_cpu.available():
+            return hashgrid_cpu.FusedLookup.apply(self.tables, u, *self._kernel_args)  # (N, L * F)
+        u = u.t()  # (3, N)
         res = self.resolutions
         pos = u[None] * res[:, None, None].float()  # (L, 3, N)
         cell = torch.minimum(pos.long(), (res - 1)[:, None, None])  # floor (pos >= 0)

@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 from lightstage.atomic import write_json_atomic
 from lightstage.errors import LightstageError
+from lightstage.malloc import keep_large_blocks
 from lightstage.records.shards import TestImage
 from lightstage.tonemap import auto_exposure
 from lightstage.training.checkpoint import (
@@ -134,6 +135,7 @@ def fit(
     """Train until config.optim.steps (or `stop_at`, for interrupted runs in tests), resuming from
     out_dir/checkpoint.pt when present. Returns a summary dict (rank 0 writes every file)."""
     device = torch.device(device)
+    keep_large_blocks()  # a step's multi-MB activations and table gradients reuse freed heap (lightstage.malloc)
     rank, world = distributed()
     writer_rank = rank == 0
     out_dir = Path(out_dir)

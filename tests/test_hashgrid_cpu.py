@@ -1,0 +1,99 @@
+"""The hash encoding's fused CPU kernels (`lightstage.training.hashgrid_cpu`): the same features and table
+gradients as the PyTorch path, independent of the thread count, and usable in a forked child."""
+
+from __future__ import annotations
+
+import multiprocessing
+
+import pytest
+import torch
+
+from lightstage.training import hashgrid_cpu
+from lightstage.training.hashgrid import HashGridEncoding
+
+pytestmark = pytest.mark.skipif(not hashgrid_cpu.available(), reason="numba not installed")
+
+
+def _points(n: int = 3000) -> torch.Tensor:
+    gen = torch.Generator().manual_seed(3)
+    x = torch.rand(n, 3, generator=gen) * 2.2 - 1.1  # some outside the cube: clamped to its faces
+    x[:4] = torch.tensor([[1.0, 1.0, 1.0], [-1.0, -1.0, -1.0], [1.0, -1.0, 0.0], [0.0, 0.0, 0.0]])
+    return x
+
+
+def _run(enc: HashGridEncoding, x: torch.Tensor, fused: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    old = hashgrid_cpu.set_enabled(fused)
+    try:
+        enc.tables.grad = None
+        out = enc(x)
+        out.backward(torch.cos(torch.arange(out.numel(), dtype=torch.float32)).reshape(out.shape))
+        return out.detach(), enc.tables.grad.clone()
+    finally:
+        hashgrid_cpu.set_enabled(old)
+
+
+def test_fused_kernels_equal_the_pytorch_path():
+    """`fast`'s layout (dense and hashed levels): features to float32 rounding, gradients too (the PyTorch
+    path accumulates them in float64, the kernels in float32)."""
+    torch.manual_seed(0)
+    enc = HashGridEncoding(levels=16, features=2, log2_table_size=19, base_resolution=16, max_resolution=1024)
+    with torch.no_grad():
+        enc.tables.normal_()
+    assert any(enc.dense) and not all(enc.dense)
+    x = _points()
+    out_f, grad_f = _run(enc, x, fused=True)
+    out_t, grad_t = _run(enc, x, fused=False)
+    torch.testing.assert_close(out_f, out_t, rtol=1e-6, atol=1e-6)
+    torch.testing.assert_close(grad_f, grad_t, rtol=1e-5, atol=1e-6)
+    assert grad_f.abs().sum() > 0
+
+
+def test_fused_kernels_do_not_depend_on_the_thread_count():
+    """Each level belongs to one thread, so 1, 2 and 3 threads give bit-identical features and gradients."""
+    enc = HashGridEncoding(levels=8, features=2, log2_table_size=12, base_resolution=4, max_resolution=128)
+    with torch.no_grad():
+        enc.tables.normal_()
+    x = _points()
+    threads = torch.get_num_threads()
+    try:
+        results = []
+        for n in (1, 2, 3):
+            torch.set_num_threads(n)
+            results.append(_run(enc, x, fused=True))
+    finally:
+        torch.set_num_threads(threads)
+    for out, grad in results[1:]:
+        assert torch.equal(out, results[0][0]) and torch.equal(grad, results[0][1])
+
+
+def _child(conn) -> None:
+    enc = HashGridEncoding(levels=4, features=2, log2_table_size=10, base_resolution=4, max_resolution=32)
+    conn.send(enc(torch.zeros(5, 3)).shape == (5, 8))
+
+
+@pytest.mark.timeout(60)
+def test_kernels_work_in_a_forked_child_after_the_parent_used_them():
+    """The parent's worker threads do not survive a fork; the child starts its own pool instead of hanging."""
+    torch.set_num_threads(max(2, torch.get_num_threads()))
+    enc = HashGridEncoding(levels=4, features=2, log2_table_size=10, base_resolution=4, max_resolution=32)
+    enc(torch.zeros(5, 3))  # the parent's pool is running
+    ctx = multiprocessing.get_context("fork")
+    parent, child = ctx.Pipe()
+    proc = ctx.Process(target=_child, args=(child,))
+    proc.start()
+    ok = parent.poll(50) and parent.recv()
+    proc.join(5)
+    if proc.is_alive():
+        proc.kill()
+    assert ok and proc.exitcode == 0
+
+
+def test_malloc_thresholds_apply_on_glibc():
+    """Training keeps freed multi-MB blocks in the heap (`lightstage.malloc`); glibc accepts the settings."""
+    import platform
+
+    from lightstage.malloc import keep_large_blocks
+
+    if platform.libc_ver()[0] != "glibc":
+        pytest.skip("not glibc")
+    assert keep_large_blocks() is True

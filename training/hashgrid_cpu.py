@@ -1,0 +1,199 @@
+"""The hash encoding's CPU kernels: lookup and its table gradient fused per level in numba, so no (8, levels, N)
+index or weight array is materialised and the gradient is scattered straight into a float32 table.
+
+The arithmetic is `HashGridEncoding`'s (float32 positions, the int32-exact spatial hash, the same corner order);
+the PyTorch path stays for CUDA and as the reference. Work is split by level over a small thread pool of
+GIL-free calls: each level is one thread's alone, so the scatter needs no atomics, and results do not depend
+on the thread count. Numba's own parallel layers are avoided on purpose (the `omp` one is not fork-safe with
+GNU OpenMP, `workqueue` not thread-safe).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import torch
+
+try:
+    import numba
+except ImportError:  # pragma: no cover - numba is a dependency; the PyTorch path still works without it
+    numba = None
+
+_ENABLED = os.environ.get("LIGHTSTAGE_HASHGRID_KERNEL", "numba") != "torch"
+_POOL: ThreadPoolExecutor | None = None
+_POOL_LOCK = threading.Lock()
+
+
+def available() -> bool:
+    """True when the fused CPU kernels can run (numba importable and not switched off)."""
+    return numba is not None and _ENABLED
+
+
+def set_enabled(enabled: bool) -> bool:
+    """Switch the fused CPU kernels on or off (benches and tests compare both paths); returns the old state."""
+    global _ENABLED
+    old, _ENABLED = _ENABLED, bool(enabled)
+    return old
+
+
+if numba is not None:
+
+    @numba.njit(nogil=True, cache=True)
+    def _corner_cells(u, n, res_f, res_i):
+        """Cell (cx, cy, cz) and fractions (fx, fy, fz) of point n at one level's resolution, in float32."""
+        px = u[n, 0] * res_f
+        py = u[n, 1] * res_f
+        pz = u[n, 2] * res_f
+        cx = min(np.int64(px), res_i - 1)
+        cy = min(np.int64(py), res_i - 1)
+        cz = min(np.int64(pz), res_i - 1)
+        return cx, cy, cz, px - np.float32(cx), py - np.float32(cy), pz - np.float32(cz)
+
+    @numba.njit(nogil=True, cache=True)
+    def _corner_index(cx, cy, cz, k, dense, stride, mask, px_, py_, pz_):
+        """Table row of corner k (bit 0: +x, bit 1: +y, bit 2: +z) of cell (cx, cy, cz)."""
+        x = cx + (k & 1)
+        y = cy + ((k >> 1) & 1)
+        z = cz + ((k >> 2) & 1)
+        if dense:
+            return x + stride * (y + stride * z)
+        return ((x * px_) ^ (y * py_) ^ (z * pz_)) & mask
+
+    @numba.njit(nogil=True, cache=True)
+    def _corner_weight(k, fx, fy, fz):
+        """Trilinear weight of corner k, multiplied as the PyTorch path does: (wx * wy) * wz."""
+        one = np.float32(1.0)
+        wx = fx if k & 1 else one - fx
+        wy = fy if (k >> 1) & 1 else one - fy
+        wz = fz if (k >> 2) & 1 else one - fz
+        return (wx * wy) * wz
+
+    @numba.njit(nogil=True, cache=True)
+    def _forward_levels(u, table, res_f, res_i, dense, primes, levels, out):
+        """out[l, n, f] = sum_k w_k * table[l, idx_k, f] for the given levels (level-major: each level's rows
+        are written contiguously)."""
+        n_pts, size, nf = u.shape[0], table.shape[1], table.shape[2]
+        mask = size - 1
+        px_, py_, pz_ = primes[0], primes[1], primes[2]
+        for level in levels:
+            rf, ri, dn = res_f[level], res_i[level], dense[level]
+            stride = ri + 1
+            tab, dst = table[level], out[level]
+            for n in range(n_pts):
+                cx, cy, cz, fx, fy, fz = _corner_cells(u, n, rf, ri)
+                if nf == 2:  # the common layout: two accumulators in registers
+                    a0 = np.float32(0.0)
+                    a1 = np.float32(0.0)
+                    for k in range(8):
+                        idx = _corner_index(cx, cy, cz, k, dn, stride, mask, px_, py_, pz_)
+                        w = _corner_weight(k, fx, fy, fz)
+                        a0 += w * tab[idx, 0]
+                        a1 += w * tab[idx, 1]
+                    dst[n, 0] = a0
+                    dst[n, 1] = a1
+                    continue
+                for f in range(nf):
+                    dst[n, f] = 0.0
+                for k in range(8):
+                    idx = _corner_index(cx, cy, cz, k, dn, stride, mask, px_, py_, pz_)
+                    w = _corner_weight(k, fx, fy, fz)
+                    for f in range(nf):
+                        dst[n, f] += w * tab[idx, f]
+
+    @numba.njit(nogil=True, cache=True)
+    def _backward_levels(u, grad_out, res_f, res_i, dense, primes, levels, grad_table):
+        """grad_table[l, idx_k, f] += w_k * grad_out[l, n, f] for the given levels (zeroed by the caller)."""
+        n_pts, size, nf = u.shape[0], grad_table.shape[1], grad_table.shape[2]
+        mask = size - 1
+        px_, py_, pz_ = primes[0], primes[1], primes[2]
+        for level in levels:
+            rf, ri, dn = res_f[level], res_i[level], dense[level]
+            stride = ri + 1
+            gt, src = grad_table[level], grad_out[level]
+            for n in range(n_pts):
+                cx, cy, cz, fx, fy, fz = _corner_cells(u, n, rf, ri)
+                if nf == 2:
+                    g0, g1 = src[n, 0], src[n, 1]
+                    for k in range(8):
+                        idx = _corner_index(cx, cy, cz, k, dn, stride, mask, px_, py_, pz_)
+                        w = _corner_weight(k, fx, fy, fz)
+                        gt[idx, 0] += w * g0
+                        gt[idx, 1] += w * g1
+                    continue
+                for k in range(8):
+                    idx = _corner_index(cx, cy, cz, k, dn, stride, mask, px_, py_, pz_)
+                    w = _corner_weight(k, fx, fy, fz)
+                    for f in range(nf):
+                        gt[idx, f] += w * src[n, f]
+
+
+def _pool(workers: int) -> ThreadPoolExecutor:
+    """The shared pool, grown (never shrunk) to `workers` threads."""
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None or _POOL._max_workers < workers:
+            old, _POOL = _POOL, ThreadPoolExecutor(workers, thread_name_prefix="hashgrid")
+            if old is not None:
+                old.shutdown(wait=False)
+        return _POOL
+
+
+def _forget_pool() -> None:
+    """In a forked child: the parent's pool threads do not exist there, so start a new pool when needed."""
+    global _POOL, _POOL_LOCK
+    _POOL, _POOL_LOCK = None, threading.Lock()
+
+
+os.register_at_fork(after_in_child=_forget_pool)
+
+
+def _run_by_level(kernel, levels: int, *args) -> None:
+    """Call `kernel(*args[:-1], level_subset, args[-1])` on interleaved level subsets, one per torch thread."""
+    workers = max(1, min(torch.get_num_threads(), levels))
+    parts = [np.arange(k, levels, workers, dtype=np.int64) for k in range(workers)]
+    if workers == 1:
+        kernel(*args[:-1], parts[0], args[-1])
+        return
+    futures = [_pool(workers).submit(kernel, *args[:-1], p, args[-1]) for p in parts]
+    for fut in futures:
+        fut.result()
+
+
+class FusedLookup(torch.autograd.Function):
+    """(N, 3) unit-cube positions u in [0, 1] and (L, T, F) float32 tables -> (N, L * F) features on CPU, given
+    per level its resolution (float32 and int64) and whether it is dense, and the hash primes mod T; with
+    the table gradient from the same kernel arithmetic. Positions get no gradient (they are not optimised)."""
+
+    @staticmethod
+    def forward(ctx, tables, u, res_f, res_i, dense, primes):
+        un = u.detach().contiguous().numpy()
+        tab = tables.detach().contiguous().numpy()
+        levels, _, nf = tab.shape
+        out = torch.empty(levels, un.shape[0], nf)
+        _run_by_level(_forward_levels, levels, un, tab, res_f, res_i, dense, primes, out.numpy())
+        ctx.save_for_backward(u)
+        ctx.meta = (res_f, res_i, dense, primes, tables.shape)
+        return out.permute(1, 0, 2).reshape(un.shape[0], levels * nf)
+
+    @staticmethod
+    def backward(ctx, grad):
+        (u,) = ctx.saved_tensors
+        res_f, res_i, dense, primes, shape = ctx.meta
+        g = torch.zeros(shape)
+        n, levels, nf = grad.shape[0], shape[0], shape[2]
+        go = grad.detach().float().reshape(n, levels, nf).permute(1, 0, 2).contiguous().numpy()
+        _run_by_level(
+            _backward_levels,
+            levels,
+            u.detach().contiguous().numpy(),
+            go,
+            res_f,
+            res_i,
+            dense,
+            primes,
+            g.numpy(),
+        )
+        return g, None, None, None, None, None
