@@ -97,3 +97,13 @@ def test_malloc_thresholds_apply_on_glibc():
     if platform.libc_ver()[0] != "glibc":
         pytest.skip("not glibc")
     assert keep_large_blocks() is True
+
+
+def test_non_finite_positions_are_refused_not_read_out_of_bounds():
+    """A NaN position would make an out-of-range row index; the kernels run without bounds checks."""
+    enc = HashGridEncoding(levels=4, features=2, log2_table_size=10, base_resolution=4, max_resolution=32)
+    x = torch.zeros(4, 3)
+    x[2, 1] = float("nan")
+    with pytest.raises(ValueError, match="non-finite"):
+        enc(x)
+    assert torch.isfinite(enc(torch.full((2, 3), float("inf")))).all()  # clamped onto the cube's face

@@ -169,6 +169,10 @@ class FusedLookup(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, tables, u, res_f, res_i, dense, primes):
+        if not bool(
+            torch.isfinite(u).all()
+        ):  # a NaN cell index would read outside the table (no bounds checks)
+            raise ValueError("hash grid: non-finite sample positions")
         un = u.detach().contiguous().numpy()
         tab = tables.detach().contiguous().numpy()
         levels, _, nf = tab.shape
