@@ -3,10 +3,10 @@ ones named) on the synthetic sphere problem, on CPU and, when present, on CUDA.
 
 For configs with an occupancy grid (`fast`) the grid is set from the analytic sphere (what training converges
 to) so empty-space skipping is measured as it behaves after warm-up; `--no-occupancy-prefill` measures the
-all-occupied start. Every config runs at the same batch, so the ratios printed at the end compare equal work. On CPU the hash-grid
-configs run with both lookups in the same run, the fused numba kernels (the default) and the PyTorch path
-(`--cpu-lookups` picks), and the ratio of the two is printed. glibc's malloc is set as training sets it
-(`lightstage.malloc`).
+all-occupied start. Every config runs at the same batch, so the ratios printed at the end compare equal work.
+On CPU the hash-grid configs run with both lookups in the same run, the fused numba kernels (the default) and
+the PyTorch path (`--cpu-lookups` picks), and the ratio of the two is printed. glibc's malloc is set as
+training sets it (`lightstage.malloc`).
 
     python bench/train_throughput.py [--configs paper paper-lite fast tiny] [--batch 4096] [--steps 5]
                                      [--devices cpu cuda] [--cpu-lookups numba torch]

@@ -2,8 +2,8 @@
 training steps): blocks up to 1 GiB come from the heap and up to 1 GiB of free heap is kept, so a freed block is
 the next one's memory instead of a fresh mapping that page-faults on first touch.
 
-With glibc's defaults every block above the (dynamic, at most 32 MiB) mmap threshold is mapped afresh: on the
-AMD EPYC VM that was ~20% more CPU per raw frame in preprocess and, in a `fast` training step, a 30 ms zeroing
+With glibc's defaults every block above the (dynamic, at most 32 MiB) mmap threshold is mapped afresh, and dask's
+own MALLOC_TRIM_THRESHOLD_=64 KiB freezes that threshold at 128 KiB in its workers: on the AMD EPYC VM that was ~20% more CPU per raw frame in preprocess and, in a `fast` training step, a 30 ms zeroing
 of its 67 MB table gradient (docs/benchmarks.md). Peak memory is unchanged: the freed block is reused.
 """
 

@@ -24,6 +24,7 @@ except ImportError:  # pragma: no cover - numba is a dependency; the PyTorch pat
 
 _ENABLED = os.environ.get("LIGHTSTAGE_HASHGRID_KERNEL", "numba") != "torch"
 _POOL: ThreadPoolExecutor | None = None
+_POOL_SIZE = 0
 _POOL_LOCK = threading.Lock()
 
 
@@ -132,10 +133,14 @@ if numba is not None:
 
 def _pool(workers: int) -> ThreadPoolExecutor:
     """The shared pool, grown (never shrunk) to `workers` threads."""
-    global _POOL
+    global _POOL, _POOL_SIZE
     with _POOL_LOCK:
-        if _POOL is None or _POOL._max_workers < workers:
-            old, _POOL = _POOL, ThreadPoolExecutor(workers, thread_name_prefix="hashgrid")
+        if _POOL is None or _POOL_SIZE < workers:
+            old, _POOL, _POOL_SIZE = (
+                _POOL,
+                ThreadPoolExecutor(workers, thread_name_prefix="hashgrid"),
+                workers,
+            )
             if old is not None:
                 old.shutdown(wait=False)
         return _POOL
@@ -143,8 +148,8 @@ def _pool(workers: int) -> ThreadPoolExecutor:
 
 def _forget_pool() -> None:
     """In a forked child: the parent's pool threads do not exist there, so start a new pool when needed."""
-    global _POOL, _POOL_LOCK
-    _POOL, _POOL_LOCK = None, threading.Lock()
+    global _POOL, _POOL_SIZE, _POOL_LOCK
+    _POOL, _POOL_SIZE, _POOL_LOCK = None, 0, threading.Lock()
 
 
 os.register_at_fork(after_in_child=_forget_pool)
