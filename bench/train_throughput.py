@@ -9,7 +9,10 @@ the PyTorch path (`--cpu-lookups` picks), and the ratio of the two is printed. g
 training sets it (`lightstage.malloc`).
 
     python bench/train_throughput.py [--configs paper paper-lite fast tiny] [--batch 4096] [--steps 5]
-                                     [--devices cpu cuda] [--cpu-lookups numba torch]
+                                     [--devices cpu cuda] [--cpu-lookups numba torch] [--precision bf16|fp16|fp32]
+
+`--precision` replaces each config's own; the JSON's `precision` is what autocast actually ran
+(`training/trainer.autocast_dtype`: the config's on CUDA, fp32 on CPU).
 """
 
 from __future__ import annotations
@@ -23,6 +26,9 @@ import argparse
 import json
 import time
 
+import lightstage  # noqa: F401  (before torch: it bounds GNU OpenMP's spin-wait, as in training)
+
+# isort: split
 import torch
 from support.synthetic import SyntheticSphere
 
@@ -31,7 +37,7 @@ from lightstage.training import hashgrid_cpu
 from lightstage.training.config import BUILTIN_CONFIGS, load_config
 from lightstage.training.losses import measured_epsilon, total_loss
 from lightstage.training.model import RelightModel
-from lightstage.training.trainer import autocast_context, compute_stats, make_optimizer
+from lightstage.training.trainer import autocast_context, autocast_dtype, compute_stats, make_optimizer
 
 
 def prefill_occupancy(model: RelightModel, src: SyntheticSphere) -> None:
@@ -44,8 +50,10 @@ def prefill_occupancy(model: RelightModel, src: SyntheticSphere) -> None:
     occ.ready.fill_(True)
 
 
-def measure(name: str, device: str, batch: int, steps: int, warmup: int, prefill: bool, lookup: str) -> dict:
-    cfg = load_config(name)
+def measure(
+    name: str, device: str, batch: int, steps: int, warmup: int, prefill: bool, lookup: str, precision: str
+) -> dict:
+    cfg = load_config(name, {"optim": {"precision": precision}} if precision else None)
     hashgrid_cpu.set_enabled(lookup == "numba")
     src = SyntheticSphere(batch_size=batch)
     dev = torch.device(device)
@@ -84,7 +92,9 @@ def measure(name: str, device: str, batch: int, steps: int, warmup: int, prefill
         "steps": steps,
         "seconds": dt,
         "rays_per_s": batch * steps / dt,
-        "precision": cfg.optim.precision if dev.type == "cuda" else "fp32",
+        "precision": {None: "fp32", torch.bfloat16: "bf16", torch.float16: "fp16"}[
+            autocast_dtype(dev, cfg.optim.precision)
+        ],
         "occupancy_prefilled": bool(model.occupancy is not None and prefill),
         "threads": torch.get_num_threads(),
         "lookup": lookup,
@@ -107,6 +117,7 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=1)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--no-occupancy-prefill", action="store_true")
+    ap.add_argument("--precision", choices=["bf16", "fp16", "fp32"], help="instead of each config's own")
     ap.add_argument(
         "--cpu-lookups",
         nargs="+",
@@ -125,7 +136,8 @@ def main() -> None:
         for name in args.configs:
             hashgrid = load_config(name).model.field == "hashgrid"
             for lookup in args.cpu_lookups if device == "cpu" and hashgrid else args.cpu_lookups[:1]:
-                r = measure(name, device, batch, steps, args.warmup, not args.no_occupancy_prefill, lookup)
+                prefill = not args.no_occupancy_prefill
+                r = measure(name, device, batch, steps, args.warmup, prefill, lookup, args.precision)
                 print(json.dumps(r), flush=True)
                 results.append(r)
     by: dict[tuple[str, str], float] = {}

@@ -5,6 +5,9 @@ the conventions (cameras, lights, tonemap), each defined in exactly one module.
 """
 
 from lightstage.errors import LightstageError
+from lightstage.threads import bound_openmp_spin
+
+bound_openmp_spin()  # before anything imports torch (lightstage.threads)
 
 __version__ = "0.1.0"
 __all__ = ["LightstageError", "__version__"]

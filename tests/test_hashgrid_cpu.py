@@ -107,3 +107,19 @@ def test_non_finite_positions_are_refused_not_read_out_of_bounds():
     with pytest.raises(ValueError, match="non-finite"):
         enc(x)
     assert torch.isfinite(enc(torch.full((2, 3), float("inf")))).all()  # clamped onto the cube's face
+
+
+def test_backward_kernel_zeroes_its_levels_first():
+    """The table gradient's memory comes uninitialised (`torch.empty`): the kernel clears each level before
+    it scatters, so leftovers in the buffer never reach the gradient."""
+    import numpy as np
+
+    enc = HashGridEncoding(levels=6, features=2, log2_table_size=12, base_resolution=4, max_resolution=96)
+    u = ((_points(500) + 1.0) * 0.5).clamp(0.0, 1.0).numpy()
+    go = np.cos(np.arange(6 * 500 * 2, dtype=np.float32)).reshape(6, 500, 2)
+    clean = np.zeros(tuple(enc.tables.shape), np.float32)
+    dirty = np.full(tuple(enc.tables.shape), np.nan, np.float32)
+    for buf in (clean, dirty):
+        hashgrid_cpu._run_by_level(hashgrid_cpu._backward_levels, 6, u, go, *enc._kernel_args, buf)
+    np.testing.assert_array_equal(dirty, clean)
+    assert np.abs(clean).sum() > 0

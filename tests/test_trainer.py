@@ -96,3 +96,18 @@ def test_tiny_synthetic_problem_learns_and_beats_constant_baseline(tmp_path):
     assert after < 0.2 * before
     assert mean["psnr"] > mean["baseline_psnr"] + 5.0
     assert mean["ssim"] > mean["baseline_ssim"]
+
+
+def test_autocast_dtype_rule():
+    """CPU always trains in float32; CUDA autocasts in the config's precision, and fp16 (which gets a
+    GradScaler) is what runs when asked for (no GPU needed: the rule only)."""
+    from lightstage.training import trainer
+
+    cpu, cuda = torch.device("cpu"), torch.device("cuda")
+    for precision in ("bf16", "fp16", "fp32"):
+        assert trainer.autocast_dtype(cpu, precision) is None
+        with trainer.autocast_context(cpu, precision):
+            assert torch.nn.functional.linear(torch.ones(2, 3), torch.ones(4, 3)).dtype == torch.float32
+    assert (
+        trainer.autocast_dtype(cuda, "fp16") == torch.float16 and trainer.autocast_dtype(cuda, "fp32") is None
+    )

@@ -95,12 +95,19 @@ def distributed() -> tuple[int, int]:
     return 0, 1
 
 
+def autocast_dtype(device: torch.device, precision: str) -> torch.dtype | None:
+    """The autocast dtype training runs under: bf16/fp16 on CUDA (fp16 where bf16 is unsupported), None (full
+    precision) elsewhere. CPU stays float32: bf16 autocast there (AVX512-BF16, AMX) trained `fast` no better per
+    step and slower on the demo capture (docs/benchmarks.md, 2026-12-06)."""
+    if precision == "fp32" or device.type != "cuda":
+        return None
+    return torch.bfloat16 if precision == "bf16" and torch.cuda.is_bf16_supported() else torch.float16
+
+
 def autocast_context(device: torch.device, precision: str) -> contextlib.AbstractContextManager:
-    """bf16/fp16 autocast on CUDA; full precision elsewhere."""
-    if device.type != "cuda" or precision == "fp32":
-        return contextlib.nullcontext()
-    dtype = torch.bfloat16 if precision == "bf16" and torch.cuda.is_bf16_supported() else torch.float16
-    return torch.autocast("cuda", dtype=dtype)
+    """Autocast in `autocast_dtype`'s dtype, or nothing; the fields' heads return float32 either way."""
+    dtype = autocast_dtype(device, precision)
+    return contextlib.nullcontext() if dtype is None else torch.autocast(device.type, dtype=dtype)
 
 
 def make_optimizer(model: torch.nn.Module, ocfg: OptimConfig) -> torch.optim.Adam:
@@ -148,7 +155,7 @@ def fit(
     model = RelightModel(cfg.model, centre, scale, box, hull).to(device)
     opt = make_optimizer(model, ocfg)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, ocfg))
-    use_scaler = device.type == "cuda" and ocfg.precision == "fp16"
+    use_scaler = autocast_dtype(device, ocfg.precision) == torch.float16  # fp16 needs loss scaling; bf16 not
     scaler = torch.amp.GradScaler("cuda", enabled=use_scaler) if use_scaler else None
 
     step, stats, train_seconds = 0, None, 0.0  # train_seconds: optimiser time over all runs (no evaluations)
