@@ -1,5 +1,6 @@
 """Library thread counts: set once per process, without importing torch where it is not loaded yet."""
 
+import os
 import subprocess
 import sys
 
@@ -30,8 +31,7 @@ def test_torch_already_loaded_gets_its_threads_set():
 
 
 def _spin(env_value: str | None) -> str:
-    import os
-
+    """GOMP_SPINCOUNT as a fresh process sees it after `import lightstage, torch` (`env_value`: the user's)."""
     env = {k: v for k, v in os.environ.items() if k != "GOMP_SPINCOUNT"}
     if env_value is not None:
         env["GOMP_SPINCOUNT"] = env_value

@@ -74,7 +74,8 @@ if numba is not None:
 
     @numba.njit(nogil=True, cache=True)
     def _prefetch_corners(u, m, rf, ri, dn, stride, mask, px_, py_, pz_, tab, write):
-        """Prefetch the 8 corner rows of point m (for reading, or for writing when `write` is 1)."""
+        """Prefetch the 8 corner rows of point m (for reading, or for writing when `write` is 1). The cell and
+        hash are computed again when m's turn comes: a few integer ops, cheaper than keeping a ring of them."""
         cx, cy, cz, _, _, _ = _corner_cells(u, m, rf, ri)
         for k in range(8):
             _prefetch_row(tab, _corner_index(cx, cy, cz, k, dn, stride, mask, px_, py_, pz_), write)
