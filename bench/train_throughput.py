@@ -5,11 +5,14 @@ For configs with an occupancy grid (`fast`) the grid is set from the analytic sp
 to) so empty-space skipping is measured as it behaves after warm-up; `--no-occupancy-prefill` measures the
 all-occupied start. Every config runs at the same batch, so the ratios printed at the end compare equal work.
 On CPU the hash-grid configs run with both lookups in the same run, the fused numba kernels (the default) and
-the PyTorch path (`--cpu-lookups` picks), and the ratio of the two is printed. glibc's malloc is set as
-training sets it (`lightstage.malloc`).
+the PyTorch path (`--cpu-lookups` picks), and the ratio of the two is printed; likewise their MLPs, chunked
+in one autograd function (`training/fused_mlp`, the default) and as modules (`--cpu-mlps`). `--rounds N`
+repeats every variant N times interleaved and reports each one's median (the VMs measured vary by 10-30 %
+minute to minute). glibc's malloc is set as training sets it (`lightstage.malloc`).
 
     python bench/train_throughput.py [--configs paper paper-lite fast tiny] [--batch 4096] [--steps 5]
-                                     [--devices cpu cuda] [--cpu-lookups numba torch] [--precision bf16|fp16|fp32]
+                                     [--devices cpu cuda] [--cpu-lookups numba torch] [--cpu-mlps fused module]
+                                     [--rounds 1] [--precision bf16|fp16|fp32]
 
 `--precision` replaces each config's own; the JSON's `precision` is what autocast actually ran
 (`training/trainer.autocast_dtype`: the config's on CUDA, fp32 on CPU).
@@ -24,6 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # tests/
 
 import argparse
 import json
+import statistics
 import time
 
 import lightstage  # noqa: F401  (before torch: it bounds GNU OpenMP's spin-wait, as in training)
@@ -33,6 +37,7 @@ import torch
 from support.synthetic import SyntheticSphere
 
 from lightstage.malloc import keep_large_blocks
+from lightstage.training import hashgrid as hashgrid_field
 from lightstage.training import hashgrid_cpu
 from lightstage.training.config import BUILTIN_CONFIGS, load_config
 from lightstage.training.losses import measured_epsilon, total_loss
@@ -51,10 +56,19 @@ def prefill_occupancy(model: RelightModel, src: SyntheticSphere) -> None:
 
 
 def measure(
-    name: str, device: str, batch: int, steps: int, warmup: int, prefill: bool, lookup: str, precision: str
+    name: str,
+    device: str,
+    batch: int,
+    steps: int,
+    warmup: int,
+    prefill: bool,
+    lookup: str,
+    mlp: str,
+    precision: str,
 ) -> dict:
     cfg = load_config(name, {"optim": {"precision": precision}} if precision else None)
     hashgrid_cpu.set_enabled(lookup == "numba")
+    hashgrid_field._FUSED_MLP = mlp == "fused"
     src = SyntheticSphere(batch_size=batch)
     dev = torch.device(device)
     model = RelightModel(cfg.model, src.centre, src.scale).to(dev)
@@ -98,6 +112,7 @@ def measure(
         "occupancy_prefilled": bool(model.occupancy is not None and prefill),
         "threads": torch.get_num_threads(),
         "lookup": lookup,
+        "mlp": mlp,
     }
 
 
@@ -125,6 +140,14 @@ def main() -> None:
         default=["numba", "torch"] if hashgrid_cpu.available() else ["torch"],
         help="hash-grid lookups to measure on CPU (default: both)",
     )
+    ap.add_argument(
+        "--cpu-mlps",
+        nargs="+",
+        choices=["fused", "module"],
+        default=["fused", "module"],
+        help="hash-grid MLP paths to measure on CPU (default: both)",
+    )
+    ap.add_argument("--rounds", type=int, default=1, help="interleaved repeats of every variant (median)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     keep_large_blocks()
@@ -135,19 +158,36 @@ def main() -> None:
         steps = args.steps or (20 if gpu else 3)
         for name in args.configs:
             hashgrid = load_config(name).model.field == "hashgrid"
-            for lookup in args.cpu_lookups if device == "cpu" and hashgrid else args.cpu_lookups[:1]:
-                prefill = not args.no_occupancy_prefill
-                r = measure(name, device, batch, steps, args.warmup, prefill, lookup, args.precision)
+            cpu_grid = device == "cpu" and hashgrid
+            variants = [
+                (lookup, mlp)
+                for lookup in (args.cpu_lookups if cpu_grid else args.cpu_lookups[:1])
+                for mlp in (args.cpu_mlps if cpu_grid else ["module"])
+            ]
+            runs: dict[tuple[str, str], list[dict]] = {v: [] for v in variants}
+            for _ in range(args.rounds):
+                for lookup, mlp in variants:
+                    prefill = not args.no_occupancy_prefill
+                    r = measure(name, device, batch, steps, args.warmup, prefill, lookup, mlp, args.precision)
+                    runs[(lookup, mlp)].append(r)
+            for v in variants:
+                r = dict(runs[v][0])
+                r["rays_per_s"] = statistics.median(x["rays_per_s"] for x in runs[v])
+                r["rounds"] = [round(x["rays_per_s"]) for x in runs[v]]
                 print(json.dumps(r), flush=True)
                 results.append(r)
     by: dict[tuple[str, str], float] = {}
     for r in results:  # ratios between configs at the first lookup measured (the default)
         by.setdefault((r["device"], r["config"]), r["rays_per_s"])
-    pairs = {(r["config"], r["lookup"]): r["rays_per_s"] for r in results if r["device"] == "cpu"}
+    cpu = {(r["config"], r["lookup"], r["mlp"]): r["rays_per_s"] for r in results if r["device"] == "cpu"}
+    mlp0, lookup0 = args.cpu_mlps[0], args.cpu_lookups[0]
     for name in args.configs:
-        if (name, "numba") in pairs and (name, "torch") in pairs:
-            ratio = pairs[(name, "numba")] / pairs[(name, "torch")]
-            print(f"cpu: {name}: fused numba lookup {ratio:.2f}x the PyTorch lookup")
+        if (name, "numba", mlp0) in cpu and (name, "torch", mlp0) in cpu:
+            ratio = cpu[(name, "numba", mlp0)] / cpu[(name, "torch", mlp0)]
+            print(f"cpu: {name}: fused numba lookup {ratio:.2f}x the PyTorch lookup ({mlp0} MLPs)")
+        if (name, lookup0, "fused") in cpu and (name, lookup0, "module") in cpu:
+            ratio = cpu[(name, lookup0, "fused")] / cpu[(name, lookup0, "module")]
+            print(f"cpu: {name}: chunked fused MLPs {ratio:.2f}x the module MLPs ({lookup0} lookup)")
     for device in args.devices:
         if (device, "paper") in by:
             ratios = ", ".join(

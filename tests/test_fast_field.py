@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from support.training import rays_into_origin
 
 from lightstage.training import hashgrid_cpu
 from lightstage.training.config import load_config
@@ -66,11 +67,7 @@ def _check_against_reference(enc: HashGridEncoding) -> None:
 
 
 def _rays(n: int = 256):
-    torch.manual_seed(1)
-    o = torch.tensor([0.0, -2.0, 0.0]).expand(n, 3) + torch.randn(n, 3) * 0.05
-    d = torch.nn.functional.normalize(torch.tensor([0.0, 1.0, 0.0]) + torch.randn(n, 3) * 0.15, dim=-1)
-    light = torch.nn.functional.normalize(torch.randn(n, 3), dim=-1)
-    return o, d, light
+    return rays_into_origin(n, seed=1, spread=0.15)
 
 
 def test_transfer_skipped_only_below_min_weight():
@@ -95,9 +92,8 @@ def test_samples_stay_inside_the_box_and_density_outside_is_zero():
     model = RelightModel(cfg, [0.0, 0.0, 0.0], 1.0, box=box)
     o, d, _ = _rays(64)
     seen = []
-    model.fine.geometry = (lambda f: lambda x: (seen.append(x.detach().clone()), f(x))[1])(
-        model.fine.geometry
-    )
+    # every evaluated position passes the hash encoding (module MLPs or the chunked fused ones alike)
+    model.fine.encoding.register_forward_pre_hook(lambda m, args: seen.append(args[0].detach().clone()))
     model(o, d, torch.nn.functional.normalize(torch.ones(64, 3), dim=-1))
     x = torch.cat(seen)
     lo, hi = torch.tensor(box[0]), torch.tensor(box[1])

@@ -9,16 +9,18 @@ On CPU the lookup runs in the fused kernels of `hashgrid_cpu`; the PyTorch path 
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import torch
 from torch import nn
 
-from lightstage.training import hashgrid_cpu
+from lightstage.training import fused_mlp, hashgrid_cpu
 from lightstage.training.config import ModelConfig
 from lightstage.training.encoding import encoded_dim, positional_encoding
 from lightstage.training.heads import density_activation, exp_head
 
+_FUSED_MLP = os.environ.get("LIGHTSTAGE_FUSED_MLP", "1") != "0"
 PRIMES = (1, 2654435761, 805459861)
 CORNERS = torch.tensor([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], dtype=torch.long)
 
@@ -189,6 +191,34 @@ class HashGridField(nn.Module):
         for module in self.head[1:]:
             pre = module(pre)
         return exp_head(pre, self.cfg.h_max_exponent)
+
+    def fused_available(self, x: torch.Tensor) -> bool:
+        """Whether `geometry_and_transfer` runs the chunked MLPs (`fused_mlp`): on CPU, float32, outside autocast."""
+        return x.device.type == "cpu" and not torch.is_autocast_enabled("cpu") and _FUSED_MLP
+
+    def geometry_and_transfer(
+        self, x: torch.Tensor, view: torch.Tensor, light: torch.Tensor, rows: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(sigma (N,), h (N, 3)) at normalised positions x (N, 3) of rays `rows` (N,) with the view and light
+        per ray (R, 3): `geometry` then `transfer(..., per_ray_light=True)` through `fused_mlp.field_mlp`."""
+        g = self.cfg.hashgrid
+        first = self.head[0]
+        nf = g.geo_features
+        per_ray = [positional_encoding(view, g.dir_freqs), positional_encoding(light, g.light_freqs)]
+        if g.half_freqs >= 0:
+            per_ray.append(
+                positional_encoding(torch.nn.functional.normalize(light - view, dim=-1), g.half_freqs)
+            )
+        ray_term = torch.cat(per_ray, -1) @ first.weight[:, nf:].t()
+        geo_out, raw = fused_mlp.field_mlp(
+            self.encoding(x),
+            ray_term,
+            rows,
+            [(m.weight, m.bias) for m in self.geo[::2]],
+            [(first.weight[:, :nf], first.bias)] + [(m.weight, m.bias) for m in self.head[2::2]],
+        )
+        sigma = density_activation(geo_out[:, 0], self.cfg.density_activation, self.cfg.density_bias)
+        return sigma, exp_head(raw, self.cfg.h_max_exponent)
 
     def forward(
         self, x: torch.Tensor, view: torch.Tensor, light: torch.Tensor

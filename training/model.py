@@ -170,8 +170,16 @@ class RelightModel(nn.Module):
         all. Training (min_weight 0) never skips by weight: a skipped sample passes no gradient to its own
         density, and a region whose weights fell below the threshold could never grow back (a dark, thin
         stand is lost that way). Skipping by transmittance (behind the surface) did not pay on the demo
-        capture: its trained density is volumetric (~3/4 of the kept samples carry weight > 1e-3)."""
+        capture: its trained density is volumetric (~3/4 of the kept samples carry weight > 1e-3).
+        Training with a distant light on CPU runs both MLPs chunked in one function (`fused_mlp`)."""
         R, S = keep.shape
+        if min_weight <= 0 and not isinstance(light, tuple) and field.fused_available(x):
+            rows = keep.nonzero(as_tuple=True)[0]
+            s, h = field.geometry_and_transfer(x[keep], d, light, rows)
+            sigma = torch.zeros(R, S, device=x.device, dtype=s.dtype).masked_scatter(keep, s)
+            w = volume_weights(sigma, delta)
+            hh = torch.zeros(R, S, 3, device=x.device, dtype=h.dtype).masked_scatter(keep[..., None], h)
+            return composite(w, hh), sigma, w
         s, feat = field.geometry(x[keep])
         sigma = torch.zeros(R, S, device=x.device, dtype=s.dtype).masked_scatter(keep, s)
         w = volume_weights(sigma, delta)

@@ -11,6 +11,16 @@ from lightstage.training.trainer import fit
 from support.synthetic import SyntheticSphere
 
 
+def rays_into_origin(n: int, seed: int, spread: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(origins, unit directions, unit light directions) of n rays from about (0, -2, 0) towards +y, directions
+    jittered by `spread`, lights random: a bundle through the unit cube for field and model tests."""
+    torch.manual_seed(seed)
+    o = torch.tensor([0.0, -2.0, 0.0]).expand(n, 3) + torch.randn(n, 3) * 0.05
+    d = torch.nn.functional.normalize(torch.tensor([0.0, 1.0, 0.0]) + torch.randn(n, 3) * spread, dim=-1)
+    light = torch.nn.functional.normalize(torch.randn(n, 3), dim=-1)
+    return o, d, light
+
+
 def micro_config(steps: int, batch: int = 64, **extra) -> TrainConfig:
     """The `tiny` config shrunk further (2 x 16 MLPs, 8 + 8 samples): seconds per run on a busy CPU."""
     over = {
