@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from lightstage.training.render import composite, volume_weights
+from lightstage.training.render import composite, composite_rows, volume_weights
 from lightstage.training.sampling import merge_edges, midpoints, ray_box, resample_edges, stratified_edges
 
 
@@ -63,3 +63,25 @@ def test_stratified_edges_span_near_far_and_resampling_concentrates():
     torch.testing.assert_close(r[1], torch.full((65,), 2.0))  # missed ray stays degenerate
     m = merge_edges(e, r)
     assert m.shape == (2, 17 + 65) and torch.all(m[:, 1:] >= m[:, :-1])
+
+
+def test_composite_rows_equals_composite_of_the_scattered_samples():
+    """Compositing only the kept samples into their rays equals `composite` over the full (R, S) layout with
+    the dropped samples at 0, values and gradients alike (the CPU training path uses the packed form)."""
+    g = torch.Generator().manual_seed(3)
+    keep = torch.rand(5, 7, generator=g) > 0.4
+    keep[2] = False  # a ray with no kept sample composites to 0
+    w_full = torch.rand(5, 7, generator=g, dtype=torch.float64).requires_grad_()
+    vals = torch.randn(int(keep.sum()), 3, generator=g, dtype=torch.float64).requires_grad_()
+    rows = keep.nonzero(as_tuple=True)[0]
+    packed = composite_rows(w_full[keep], vals, rows, 5)
+    dense = torch.zeros(5, 7, 3, dtype=torch.float64).masked_scatter(keep[..., None], vals)
+    full = composite(w_full, dense)
+    torch.testing.assert_close(packed, full)
+    assert torch.all(packed[2] == 0)
+    up = torch.randn(5, 3, generator=g, dtype=torch.float64)
+    gw_p, gv_p = torch.autograd.grad(packed, (w_full, vals), up)
+    gw_f, gv_f = torch.autograd.grad(full, (w_full, vals), up)
+    torch.testing.assert_close(gw_p[keep], gw_f[keep])
+    torch.testing.assert_close(gv_p, gv_f)
+    assert torch.all(gw_p[~keep] == 0)

@@ -2,7 +2,7 @@
 samples, so on CPU every (chunk, hidden) activation stays in cache instead of streaming (N, hidden) arrays
 through memory once per ReLU, bias and gradient op.
 
-Forward per chunk: g = geo(enc) (ReLU between layers), pre = g[:, 1:] @ Wf^T + bf + ray_term[rows], then the
+Forward per chunk: g = geo(enc) (ReLU between layers), pre = g[:, 1:] @ Wf^T + bf + ray_term[rows] (as g @ [0 | Wf]^T), then the
 head's remaining layers (ReLU before each). Each chunk's activations are kept for the backward, which walks
 the chunks again and accumulates the weight gradients (recomputing them instead was 10-15 % slower per
 `fast` step on the AMD EPYC VM measured; docs/benchmarks.md). The arithmetic is `nn.Linear`'s and
@@ -27,8 +27,10 @@ def _relu_grad(grad: torch.Tensor, activated: torch.Tensor) -> torch.Tensor:
     return torch.ops.aten.threshold_backward(grad, activated, 0.0)
 
 
-def _forward_chunk(enc, ray_rows, geo, head):
-    """Activations of one chunk: [geo layer inputs..., g, head layer inputs...], and the head's raw output."""
+def _forward_chunk(enc, ray_rows, geo, head, wf_pad):
+    """Activations of one chunk: [geo layer inputs..., g, head layer inputs...], and the head's raw output.
+    `wf_pad` is the head's first weight with a zero column for g's density column, so its product reads the
+    contiguous g (a product over the strided g[:, 1:] and 15 columns ran at a third of the others' speed)."""
     acts = [enc]
     x = enc
     for i, (w, b) in enumerate(geo):
@@ -37,13 +39,17 @@ def _forward_chunk(enc, ray_rows, geo, head):
             x = x.relu_()
         acts.append(x)
     g = x
-    w, b = head[0]
-    x = torch.addmm(b, g[:, 1:], w.t()).add_(ray_rows)
+    x = torch.addmm(head[0][1], g, wf_pad.t()).add_(ray_rows)
     for w, b in head[1:]:
         x = x.relu_()
         acts.append(x)
         x = torch.addmm(b, x, w.t())
     return acts, g, x
+
+
+def _pad_first(wf: torch.Tensor) -> torch.Tensor:
+    """The head's first weight (H, G - 1) with a zero first column: (H, G), applied to the whole g."""
+    return torch.cat([wf.new_zeros(wf.shape[0], 1), wf], 1)
 
 
 class _FieldMLP(torch.autograd.Function):
@@ -53,9 +59,11 @@ class _FieldMLP(torch.autograd.Function):
         n = len(enc)
         g_out = enc.new_empty(n, geo[-1][0].shape[0])
         h_out = enc.new_empty(n, head[-1][0].shape[0])
+        wf_pad = _pad_first(head[0][0])
         ctx.chunks = []  # per chunk (layer inputs, g): the backward's activations
         for i in range(0, n, chunk):
-            acts, g, h = _forward_chunk(enc[i : i + chunk], ray_term[rows[i : i + chunk]], geo, head)
+            ray_rows = ray_term.index_select(0, rows[i : i + chunk])
+            acts, g, h = _forward_chunk(enc[i : i + chunk], ray_rows, geo, head, wf_pad)
             ctx.chunks.append((acts, g))
             g_out[i : i + chunk] = g
             h_out[i : i + chunk] = h
@@ -72,6 +80,8 @@ class _FieldMLP(torch.autograd.Function):
         g_geo, g_head = _pairs(grads, n_geo)
         d_enc = torch.empty_like(enc) if ctx.needs_input_grad[0] else None
         d_ray = torch.zeros_like(ray_term) if ctx.needs_input_grad[1] else None
+        wf_pad = _pad_first(head[0][0])
+        dwf_pad = torch.zeros_like(wf_pad)
         if grad_g is None:
             grad_g = enc.new_zeros(len(enc), geo[-1][0].shape[0])
         if grad_h is None:
@@ -86,14 +96,11 @@ class _FieldMLP(torch.autograd.Function):
                 dw.addmm_(d.t(), head_in[k - 1])
                 db += d.sum(0)
                 d = _relu_grad(d @ w, head_in[k - 1])
-            (wf, _), (dwf, dbf) = head[0], g_head[0]
-            dwf.addmm_(d.t(), g[:, 1:])
-            dbf += d.sum(0)
+            dwf_pad.addmm_(d.t(), g)
+            g_head[0][1].add_(d.sum(0))
             if d_ray is not None:
                 d_ray.index_add_(0, r, d)
-            dg = grad_g[i : i + chunk].clone()
-            dg[:, 1:] += d @ wf
-            d = dg
+            d = torch.addmm(grad_g[i : i + chunk], d, wf_pad)  # column 0 of wf_pad is 0
             for k in range(n_geo - 1, -1, -1):  # acts[k] is geo layer k's input
                 (w, _), (dw, db) = geo[k], g_geo[k]
                 dw.addmm_(d.t(), acts[k])
@@ -102,6 +109,7 @@ class _FieldMLP(torch.autograd.Function):
                     d = _relu_grad(d @ w, acts[k])
                 elif d_enc is not None:
                     torch.mm(d, w, out=d_enc[i : i + chunk])
+        g_head[0][0].copy_(dwf_pad[:, 1:])
         return (d_enc, d_ray, None, None, None, *grads)
 
 

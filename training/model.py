@@ -16,7 +16,7 @@ from lightstage.training.hashgrid import HashGridField
 from lightstage.training.light_model import point_light
 from lightstage.training.mlp_field import MLPField
 from lightstage.training.occupancy import OccupancyGrid, box_cells, density_threshold, hull_prior
-from lightstage.training.render import composite, volume_weights
+from lightstage.training.render import composite, composite_rows, volume_weights
 from lightstage.training.sampling import merge_edges, midpoints, ray_box, resample_edges, stratified_edges
 
 
@@ -178,8 +178,7 @@ class RelightModel(nn.Module):
             s, h = field.geometry_and_transfer(x[keep], d, light, rows)
             sigma = torch.zeros(R, S, device=x.device, dtype=s.dtype).masked_scatter(keep, s)
             w = volume_weights(sigma, delta)
-            hh = torch.zeros(R, S, 3, device=x.device, dtype=h.dtype).masked_scatter(keep[..., None], h)
-            return composite(w, hh), sigma, w
+            return composite_rows(w[keep], h, rows, R), sigma, w
         s, feat = field.geometry(x[keep])
         sigma = torch.zeros(R, S, device=x.device, dtype=s.dtype).masked_scatter(keep, s)
         w = volume_weights(sigma, delta)

@@ -16,3 +16,11 @@ def volume_weights(sigma: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
 def composite(weights: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
     """(R, C) weighted sum over samples of (R, S, C) values."""
     return (weights[..., None] * values).sum(dim=-2)
+
+
+def composite_rows(
+    weights: torch.Tensor, values: torch.Tensor, rows: torch.Tensor, n_rays: int
+) -> torch.Tensor:
+    """(R, C) weighted sum of the kept samples' values (N, C) with weights (N,) into their rays `rows` (N,):
+    `composite` over only the samples that exist, without scattering them into an (R, S, C) array first."""
+    return values.new_zeros(n_rays, values.shape[1]).index_add_(0, rows, weights[:, None] * values)
