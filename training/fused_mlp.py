@@ -2,11 +2,11 @@
 samples, so on CPU every (chunk, hidden) activation stays in cache instead of streaming (N, hidden) arrays
 through memory once per ReLU, bias and gradient op.
 
-Forward per chunk: g = geo(enc) (ReLU between layers), pre = g[:, 1:] @ Wf^T + bf + ray_term[rows] (as g @ [0 | Wf]^T), then the
-head's remaining layers (ReLU before each). Each chunk's activations are kept for the backward, which walks
-the chunks again and accumulates the weight gradients (recomputing them instead was 10-15 % slower per
-`fast` step on the AMD EPYC VM measured; docs/benchmarks.md). The arithmetic is `nn.Linear`'s and
-`nn.ReLU`'s; `HashGridField` uses the module path on CUDA and as the reference.
+Forward per chunk: g = geo(enc) (ReLU between layers), pre = g[:, 1:] @ Wf^T + bf + ray_term[rows] (computed
+as g @ [0 | Wf]^T), then the head's remaining layers (ReLU before each). Each chunk's activations are kept for
+the backward, which walks the chunks again and accumulates the weight gradients (recomputing them instead was
+10-15 % slower per `fast` step on the AMD EPYC VM measured; docs/benchmarks.md). The arithmetic is
+`nn.Linear`'s and `nn.ReLU`'s; `HashGridField` uses the module path on CUDA and as the reference.
 """
 
 from __future__ import annotations
