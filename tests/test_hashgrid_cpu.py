@@ -48,6 +48,24 @@ def test_fused_kernels_equal_the_pytorch_path():
     assert grad_f.abs().sum() > 0
 
 
+@pytest.mark.parametrize(
+    ("features", "log2_table", "points"), [(2, 12, 5), (2, 12, 17), (1, 12, 3000), (4, 14, 3000), (3, 10, 7)]
+)
+def test_fused_kernels_equal_the_pytorch_path_at_other_widths_and_few_points(features, log2_table, points):
+    """The generic loop (rows of other than 2 features) and the prefetch ring's edges (fewer points than it
+    holds, or one more) give the PyTorch path's features and gradients too, on dense and hashed levels."""
+    torch.manual_seed(1)
+    enc = HashGridEncoding(8, features, log2_table, base_resolution=4, max_resolution=160)
+    with torch.no_grad():
+        enc.tables.normal_()
+    assert any(enc.dense) and not all(enc.dense)
+    x = _points(points)
+    out_f, grad_f = _run(enc, x, fused=True)
+    out_t, grad_t = _run(enc, x, fused=False)
+    torch.testing.assert_close(out_f, out_t, rtol=1e-6, atol=1e-6)
+    torch.testing.assert_close(grad_f, grad_t, rtol=1e-5, atol=1e-6)
+
+
 def test_fused_kernels_do_not_depend_on_the_thread_count():
     """Each level belongs to one thread, so 1, 2 and 3 threads give bit-identical features and gradients."""
     enc = HashGridEncoding(levels=8, features=2, log2_table_size=12, base_resolution=4, max_resolution=128)

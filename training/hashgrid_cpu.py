@@ -27,8 +27,10 @@ except ImportError:  # pragma: no cover - numba is a dependency; the PyTorch pat
 
 # Points ahead whose corner rows are prefetched: the rows of the hashed levels are random reads into 4 MB
 # tables, so without it a point waits on its own misses (forward 12.4 -> 8.1 ms for `fast`'s 44 k samples on
-# the AMD EPYC VM, cold caches; 8-32 all within noise of 16; docs/benchmarks.md)
+# the AMD EPYC VM, cold caches; 8-32 all within noise of 16; docs/benchmarks.md). Each point's hashed rows are
+# computed once, when it enters a ring of this many slots (indexed n & (PREFETCH_AHEAD - 1): a power of two)
 PREFETCH_AHEAD = 16
+assert PREFETCH_AHEAD & (PREFETCH_AHEAD - 1) == 0
 
 _ENABLED = os.environ.get("LIGHTSTAGE_HASHGRID_KERNEL", "numba") != "torch"
 _POOL: ThreadPoolExecutor | None = None
@@ -72,15 +74,7 @@ if numba is not None:
 
         return sig, codegen
 
-    @numba.njit(nogil=True, cache=True)
-    def _prefetch_corners(u, m, rf, ri, dn, stride, mask, px_, py_, pz_, tab, write):
-        """Prefetch the 8 corner rows of point m (for reading, or for writing when `write` is 1). The cell and
-        hash are computed again when m's turn comes: a few integer ops, cheaper than keeping a ring of them."""
-        cx, cy, cz, _, _, _ = _corner_cells(u, m, rf, ri)
-        for k in range(8):
-            _prefetch_row(tab, _corner_index(cx, cy, cz, k, dn, stride, mask, px_, py_, pz_), write)
-
-    @numba.njit(nogil=True, cache=True)
+    @numba.njit(nogil=True, cache=True, inline="always")
     def _corner_cells(u, n, res_f, res_i):
         """Cell (cx, cy, cz) and fractions (fx, fy, fz) of point n at one level's resolution, in float32."""
         px = u[n, 0] * res_f
@@ -91,90 +85,154 @@ if numba is not None:
         cz = min(np.int64(pz), res_i - 1)
         return cx, cy, cz, px - np.float32(cx), py - np.float32(cy), pz - np.float32(cz)
 
-    @numba.njit(nogil=True, cache=True)
-    def _corner_index(cx, cy, cz, k, dense, stride, mask, px_, py_, pz_):
-        """Table row of corner k (bit 0: +x, bit 1: +y, bit 2: +z) of cell (cx, cy, cz)."""
-        x = cx + (k & 1)
-        y = cy + ((k >> 1) & 1)
-        z = cz + ((k >> 2) & 1)
-        if dense:
-            return x + stride * (y + stride * z)
-        return ((x * px_) ^ (y * py_) ^ (z * pz_)) & mask
+    @numba.njit(nogil=True, cache=True, inline="always")
+    def _hashed_corners(cx, cy, cz, mask, px_, py_, pz_, idx):
+        """idx[k] = table row of corner k (bit 0: +x, bit 1: +y, bit 2: +z) of cell (cx, cy, cz) through the
+        spatial hash; (c + 1) * p = c * p + p, so each axis costs one product and the 8 rows 12 xors."""
+        x0, y0, z0 = cx * px_, cy * py_, cz * pz_
+        x1, y1, z1 = x0 + px_, y0 + py_, z0 + pz_
+        a, b, c, d = x0 ^ y0, x1 ^ y0, x0 ^ y1, x1 ^ y1
+        idx[0], idx[1], idx[2], idx[3] = (a ^ z0) & mask, (b ^ z0) & mask, (c ^ z0) & mask, (d ^ z0) & mask
+        idx[4], idx[5], idx[6], idx[7] = (a ^ z1) & mask, (b ^ z1) & mask, (c ^ z1) & mask, (d ^ z1) & mask
+
+    @numba.njit(nogil=True, cache=True, inline="always")
+    def _dense_offsets(stride):
+        """Row offsets of the 8 corners from corner 0 in a dense level (row = x + stride * (y + stride * z))."""
+        s2 = stride * stride
+        return np.array([0, 1, stride, stride + 1, s2, s2 + 1, s2 + stride, s2 + stride + 1], dtype=np.int64)
+
+    @numba.njit(nogil=True, cache=True, inline="always")
+    def _corner_weights(fx, fy, fz, w):
+        """w[k] = trilinear weight of corner k, multiplied as the PyTorch path does: (wx * wy) * wz."""
+        one = np.float32(1.0)
+        gx, gy, gz = one - fx, one - fy, one - fz
+        w00, w10, w01, w11 = gx * gy, fx * gy, gx * fy, fx * fy
+        w[0], w[1], w[2], w[3] = w00 * gz, w10 * gz, w01 * gz, w11 * gz
+        w[4], w[5], w[6], w[7] = w00 * fz, w10 * fz, w01 * fz, w11 * fz
 
     @numba.njit(nogil=True, cache=True)
-    def _corner_weight(k, fx, fy, fz):
-        """Trilinear weight of corner k, multiplied as the PyTorch path does: (wx * wy) * wz."""
-        one = np.float32(1.0)
-        wx = fx if k & 1 else one - fx
-        wy = fy if (k >> 1) & 1 else one - fy
-        wz = fz if (k >> 2) & 1 else one - fz
-        return (wx * wy) * wz
+    def _level_rows(u, rf, ri, dense, mask, primes, rows, w):
+        """Generic path (any features per row): every point's 8 corner rows and weights, (N, 8) each."""
+        offsets = _dense_offsets(ri + 1)
+        for n in range(u.shape[0]):
+            cx, cy, cz, fx, fy, fz = _corner_cells(u, n, rf, ri)
+            _corner_weights(fx, fy, fz, w[n])
+            if dense:
+                r0 = cx + (ri + 1) * (cy + (ri + 1) * cz)
+                for k in range(8):
+                    rows[n, k] = r0 + offsets[k]
+            else:
+                _hashed_corners(cx, cy, cz, mask, primes[0], primes[1], primes[2], rows[n])
 
     @numba.njit(nogil=True, cache=True)
     def _forward_levels(u, table, res_f, res_i, dense, primes, levels, out):
         """out[l, n, f] = sum_k w_k * table[l, idx_k, f] for the given levels (level-major: each level's rows
-        are written contiguously)."""
-        n_pts, size, nf = u.shape[0], table.shape[1], table.shape[2]
-        mask = size - 1
+        are written contiguously). Two-feature rows (the common layout) run a loop per level kind: dense
+        levels from the cell's first row plus fixed offsets, hashed levels from a ring of the rows of the
+        next PREFETCH_AHEAD points, computed once each and prefetched; other widths a generic loop."""
+        n_pts, mask, nf = u.shape[0], table.shape[1] - 1, table.shape[2]
         px_, py_, pz_ = primes[0], primes[1], primes[2]
+        w = np.empty(8, dtype=np.float32)
+        ring = np.empty((PREFETCH_AHEAD, 8), dtype=np.int64)
         for level in levels:
-            rf, ri, dn = res_f[level], res_i[level], dense[level]
-            stride = ri + 1
+            rf, ri = res_f[level], res_i[level]
             tab, dst = table[level], out[level]
-            for n in range(n_pts):
-                if n + PREFETCH_AHEAD < n_pts:
-                    m = n + PREFETCH_AHEAD
-                    _prefetch_corners(u, m, rf, ri, dn, stride, mask, px_, py_, pz_, tab, 0)
-                cx, cy, cz, fx, fy, fz = _corner_cells(u, n, rf, ri)
-                if nf == 2:  # the common layout: two accumulators in registers
+            if nf != 2:
+                rows, ws = np.empty((n_pts, 8), np.int64), np.empty((n_pts, 8), np.float32)
+                _level_rows(u, rf, ri, dense[level], mask, primes, rows, ws)
+                for n in range(n_pts):
+                    for f in range(nf):
+                        dst[n, f] = 0.0
+                    for k in range(8):
+                        for f in range(nf):
+                            dst[n, f] += ws[n, k] * tab[rows[n, k], f]
+            elif dense[level]:
+                s = ri + 1
+                off = _dense_offsets(s)
+                for n in range(n_pts):
+                    cx, cy, cz, fx, fy, fz = _corner_cells(u, n, rf, ri)
+                    base = cx + s * (cy + s * cz)
+                    _corner_weights(fx, fy, fz, w)
                     a0 = np.float32(0.0)
                     a1 = np.float32(0.0)
                     for k in range(8):
-                        idx = _corner_index(cx, cy, cz, k, dn, stride, mask, px_, py_, pz_)
-                        w = _corner_weight(k, fx, fy, fz)
-                        a0 += w * tab[idx, 0]
-                        a1 += w * tab[idx, 1]
+                        r = base + off[k]
+                        a0 += w[k] * tab[r, 0]
+                        a1 += w[k] * tab[r, 1]
                     dst[n, 0] = a0
                     dst[n, 1] = a1
-                    continue
-                for f in range(nf):
-                    dst[n, f] = 0.0
-                for k in range(8):
-                    idx = _corner_index(cx, cy, cz, k, dn, stride, mask, px_, py_, pz_)
-                    w = _corner_weight(k, fx, fy, fz)
-                    for f in range(nf):
-                        dst[n, f] += w * tab[idx, f]
+            else:
+                for n in range(min(PREFETCH_AHEAD, n_pts)):
+                    cx, cy, cz, _, _, _ = _corner_cells(u, n, rf, ri)
+                    _hashed_corners(cx, cy, cz, mask, px_, py_, pz_, ring[n])
+                for n in range(n_pts):
+                    slot = n & (PREFETCH_AHEAD - 1)
+                    cx, cy, cz, fx, fy, fz = _corner_cells(u, n, rf, ri)
+                    _corner_weights(fx, fy, fz, w)
+                    a0 = np.float32(0.0)
+                    a1 = np.float32(0.0)
+                    for k in range(8):
+                        r = ring[slot, k]
+                        a0 += w[k] * tab[r, 0]
+                        a1 += w[k] * tab[r, 1]
+                    dst[n, 0] = a0
+                    dst[n, 1] = a1
+                    if n + PREFETCH_AHEAD < n_pts:  # n's slot, now free: the point PREFETCH_AHEAD ahead
+                        qx, qy, qz, _, _, _ = _corner_cells(u, n + PREFETCH_AHEAD, rf, ri)
+                        _hashed_corners(qx, qy, qz, mask, px_, py_, pz_, ring[slot])
+                        for k in range(8):
+                            _prefetch_row(tab, ring[slot, k], 0)
 
     @numba.njit(nogil=True, cache=True)
     def _backward_levels(u, grad_out, res_f, res_i, dense, primes, levels, grad_table):
         """grad_table[l] = sum over points of w_k * grad_out[l, n, f] scattered to rows idx_k, for the given
-        levels (each level's slice is zeroed here first, by the thread that owns it)."""
-        n_pts, size, nf = u.shape[0], grad_table.shape[1], grad_table.shape[2]
-        mask = size - 1
+        levels (each level's slice is zeroed here first, by the thread that owns it); loops as the forward's,
+        the prefetch asking for the rows to write."""
+        n_pts, mask, nf = u.shape[0], grad_table.shape[1] - 1, grad_table.shape[2]
         px_, py_, pz_ = primes[0], primes[1], primes[2]
+        w = np.empty(8, dtype=np.float32)
+        ring = np.empty((PREFETCH_AHEAD, 8), dtype=np.int64)
         for level in levels:
-            rf, ri, dn = res_f[level], res_i[level], dense[level]
-            stride = ri + 1
+            rf, ri = res_f[level], res_i[level]
             gt, src = grad_table[level], grad_out[level]
             gt[:] = 0.0
-            for n in range(n_pts):
-                if n + PREFETCH_AHEAD < n_pts:
-                    m = n + PREFETCH_AHEAD
-                    _prefetch_corners(u, m, rf, ri, dn, stride, mask, px_, py_, pz_, gt, 1)
-                cx, cy, cz, fx, fy, fz = _corner_cells(u, n, rf, ri)
-                if nf == 2:
+            if nf != 2:
+                rows, ws = np.empty((n_pts, 8), np.int64), np.empty((n_pts, 8), np.float32)
+                _level_rows(u, rf, ri, dense[level], mask, primes, rows, ws)
+                for n in range(n_pts):
+                    for k in range(8):
+                        for f in range(nf):
+                            gt[rows[n, k], f] += ws[n, k] * src[n, f]
+            elif dense[level]:
+                s = ri + 1
+                off = _dense_offsets(s)
+                for n in range(n_pts):
+                    cx, cy, cz, fx, fy, fz = _corner_cells(u, n, rf, ri)
+                    base = cx + s * (cy + s * cz)
+                    _corner_weights(fx, fy, fz, w)
                     g0, g1 = src[n, 0], src[n, 1]
                     for k in range(8):
-                        idx = _corner_index(cx, cy, cz, k, dn, stride, mask, px_, py_, pz_)
-                        w = _corner_weight(k, fx, fy, fz)
-                        gt[idx, 0] += w * g0
-                        gt[idx, 1] += w * g1
-                    continue
-                for k in range(8):
-                    idx = _corner_index(cx, cy, cz, k, dn, stride, mask, px_, py_, pz_)
-                    w = _corner_weight(k, fx, fy, fz)
-                    for f in range(nf):
-                        gt[idx, f] += w * src[n, f]
+                        r = base + off[k]
+                        gt[r, 0] += w[k] * g0
+                        gt[r, 1] += w[k] * g1
+            else:
+                for n in range(min(PREFETCH_AHEAD, n_pts)):
+                    cx, cy, cz, _, _, _ = _corner_cells(u, n, rf, ri)
+                    _hashed_corners(cx, cy, cz, mask, px_, py_, pz_, ring[n])
+                for n in range(n_pts):
+                    slot = n & (PREFETCH_AHEAD - 1)
+                    cx, cy, cz, fx, fy, fz = _corner_cells(u, n, rf, ri)
+                    _corner_weights(fx, fy, fz, w)
+                    g0, g1 = src[n, 0], src[n, 1]
+                    for k in range(8):
+                        r = ring[slot, k]
+                        gt[r, 0] += w[k] * g0
+                        gt[r, 1] += w[k] * g1
+                    if n + PREFETCH_AHEAD < n_pts:
+                        qx, qy, qz, _, _, _ = _corner_cells(u, n + PREFETCH_AHEAD, rf, ri)
+                        _hashed_corners(qx, qy, qz, mask, px_, py_, pz_, ring[slot])
+                        for k in range(8):
+                            _prefetch_row(gt, ring[slot, k], 1)
 
     @numba.njit(nogil=True, cache=True)
     def _swap_leading(src, dst):
