@@ -134,7 +134,7 @@ def test_backward_kernel_zeroes_its_levels_first():
 
     enc = HashGridEncoding(levels=6, features=2, log2_table_size=12, base_resolution=4, max_resolution=96)
     u = ((_points(500) + 1.0) * 0.5).clamp(0.0, 1.0).numpy()
-    go = np.cos(np.arange(6 * 500 * 2, dtype=np.float32)).reshape(6, 500, 2)
+    go = np.cos(np.arange(6 * 2 * 500, dtype=np.float32)).reshape(6, 2, 500)
     clean = np.zeros(tuple(enc.tables.shape), np.float32)
     dirty = np.full(tuple(enc.tables.shape), np.nan, np.float32)
     for buf in (clean, dirty):

@@ -5,7 +5,9 @@ The arithmetic is `HashGridEncoding`'s (float32 positions, the int32-exact spati
 the PyTorch path stays for CUDA and as the reference. Work is split by level over a small thread pool of
 GIL-free calls: each level is one thread's alone, so the scatter needs no atomics, and results do not depend
 on the thread count. Numba's own parallel layers are avoided on purpose (the `omp` one is not fork-safe with
-GNU OpenMP, `workqueue` not thread-safe).
+GNU OpenMP, `workqueue` not thread-safe). The features come out as (L * F, N) rows, returned as their
+transpose: the MLP's products read that column-major (N, L * F) as is, and its gradient comes back in the same
+layout, so no transposing copy runs either way.
 """
 
 from __future__ import annotations
@@ -97,7 +99,7 @@ if numba is not None:
 
     @numba.njit(nogil=True, cache=True, inline="always")
     def _dense_offsets(stride):
-        """Row offsets of the 8 corners from corner 0 in a dense level (row = x + stride * (y + stride * z))."""
+        """Row offsets of the 8 corners from corner 0, dense level (row = x + stride * (y + stride * z))."""
         s2 = stride * stride
         return np.array([0, 1, stride, stride + 1, s2, s2 + 1, s2 + stride, s2 + stride + 1], dtype=np.int64)
 
@@ -126,10 +128,11 @@ if numba is not None:
 
     @numba.njit(nogil=True, cache=True)
     def _forward_levels(u, table, res_f, res_i, dense, primes, levels, out):
-        """out[l, n, f] = sum_k w_k * table[l, idx_k, f] for the given levels (level-major: each level's rows
-        are written contiguously). Two-feature rows (the common layout) run a loop per level kind: dense
-        levels from the cell's first row plus fixed offsets, hashed levels from a ring of the rows of the
-        next PREFETCH_AHEAD points, computed once each and prefetched; other widths a generic loop."""
+        """out[l, f, n] = sum_k w_k * table[l, idx_k, f] for the given levels (each level's features are
+        contiguous rows over the points: the MLP's input, column-major). Two-feature rows (the common layout)
+        run a loop per level kind: dense levels from the cell's first row plus fixed offsets, hashed levels
+        from a ring of the rows of the next PREFETCH_AHEAD points, computed once each and prefetched; other
+        widths a generic loop."""
         n_pts, mask, nf = u.shape[0], table.shape[1] - 1, table.shape[2]
         px_, py_, pz_ = primes[0], primes[1], primes[2]
         w = np.empty(8, dtype=np.float32)
@@ -142,10 +145,10 @@ if numba is not None:
                 _level_rows(u, rf, ri, dense[level], mask, primes, rows, ws)
                 for n in range(n_pts):
                     for f in range(nf):
-                        dst[n, f] = 0.0
+                        dst[f, n] = 0.0
                     for k in range(8):
                         for f in range(nf):
-                            dst[n, f] += ws[n, k] * tab[rows[n, k], f]
+                            dst[f, n] += ws[n, k] * tab[rows[n, k], f]
             elif dense[level]:
                 s = ri + 1
                 off = _dense_offsets(s)
@@ -159,8 +162,8 @@ if numba is not None:
                         r = base + off[k]
                         a0 += w[k] * tab[r, 0]
                         a1 += w[k] * tab[r, 1]
-                    dst[n, 0] = a0
-                    dst[n, 1] = a1
+                    dst[0, n] = a0
+                    dst[1, n] = a1
             else:
                 for n in range(min(PREFETCH_AHEAD, n_pts)):
                     cx, cy, cz, _, _, _ = _corner_cells(u, n, rf, ri)
@@ -175,8 +178,8 @@ if numba is not None:
                         r = ring[slot, k]
                         a0 += w[k] * tab[r, 0]
                         a1 += w[k] * tab[r, 1]
-                    dst[n, 0] = a0
-                    dst[n, 1] = a1
+                    dst[0, n] = a0
+                    dst[1, n] = a1
                     if n + PREFETCH_AHEAD < n_pts:  # n's slot, now free: the point PREFETCH_AHEAD ahead
                         qx, qy, qz, _, _, _ = _corner_cells(u, n + PREFETCH_AHEAD, rf, ri)
                         _hashed_corners(qx, qy, qz, mask, px_, py_, pz_, ring[slot])
@@ -185,7 +188,7 @@ if numba is not None:
 
     @numba.njit(nogil=True, cache=True)
     def _backward_levels(u, grad_out, res_f, res_i, dense, primes, levels, grad_table):
-        """grad_table[l] = sum over points of w_k * grad_out[l, n, f] scattered to rows idx_k, for the given
+        """grad_table[l] = sum over points of w_k * grad_out[l, f, n] scattered to rows idx_k, for the given
         levels (each level's slice is zeroed here first, by the thread that owns it); loops as the forward's,
         the prefetch asking for the rows to write."""
         n_pts, mask, nf = u.shape[0], grad_table.shape[1] - 1, grad_table.shape[2]
@@ -202,7 +205,7 @@ if numba is not None:
                 for n in range(n_pts):
                     for k in range(8):
                         for f in range(nf):
-                            gt[rows[n, k], f] += ws[n, k] * src[n, f]
+                            gt[rows[n, k], f] += ws[n, k] * src[f, n]
             elif dense[level]:
                 s = ri + 1
                 off = _dense_offsets(s)
@@ -210,7 +213,7 @@ if numba is not None:
                     cx, cy, cz, fx, fy, fz = _corner_cells(u, n, rf, ri)
                     base = cx + s * (cy + s * cz)
                     _corner_weights(fx, fy, fz, w)
-                    g0, g1 = src[n, 0], src[n, 1]
+                    g0, g1 = src[0, n], src[1, n]
                     for k in range(8):
                         r = base + off[k]
                         gt[r, 0] += w[k] * g0
@@ -223,7 +226,7 @@ if numba is not None:
                     slot = n & (PREFETCH_AHEAD - 1)
                     cx, cy, cz, fx, fy, fz = _corner_cells(u, n, rf, ri)
                     _corner_weights(fx, fy, fz, w)
-                    g0, g1 = src[n, 0], src[n, 1]
+                    g0, g1 = src[0, n], src[1, n]
                     for k in range(8):
                         r = ring[slot, k]
                         gt[r, 0] += w[k] * g0
@@ -233,16 +236,6 @@ if numba is not None:
                         _hashed_corners(qx, qy, qz, mask, px_, py_, pz_, ring[slot])
                         for k in range(8):
                             _prefetch_row(gt, ring[slot, k], 1)
-
-    @numba.njit(nogil=True, cache=True)
-    def _swap_leading(src, dst):
-        """dst[j, i, f] = src[i, j, f]: between the kernels' level-major (L, N, F) layout and the (N, L, F) rows
-        the MLP reads (4-5x faster than PyTorch's strided copy of the permuted view on the VMs measured)."""
-        a, b, nf = src.shape
-        for j in range(b):
-            for i in range(a):
-                for f in range(nf):
-                    dst[j, i, f] = src[i, j, f]
 
 
 def _pool(workers: int) -> ThreadPoolExecutor:
@@ -295,27 +288,27 @@ class FusedLookup(torch.autograd.Function):
         un = u.detach().contiguous().numpy()
         tab = tables.detach().contiguous().numpy()
         levels, _, nf = tab.shape
-        by_level = np.empty((levels, un.shape[0], nf), dtype=np.float32)
-        _run_by_level(_forward_levels, levels, un, tab, res_f, res_i, dense, primes, by_level)
-        out = torch.empty(un.shape[0], levels, nf)
-        _swap_leading(by_level, out.numpy())
+        out = torch.empty(levels * nf, un.shape[0])  # (L, F, N): each level's features as contiguous rows
+        _run_by_level(
+            _forward_levels, levels, un, tab, res_f, res_i, dense, primes, out.view(levels, nf, -1).numpy()
+        )
         ctx.save_for_backward(u)
         ctx.meta = (res_f, res_i, dense, primes, tables.shape)
-        return out.view(un.shape[0], levels * nf)
+        return out.t()  # (N, L * F), column-major: BLAS reads it as is (no transposing copy)
 
     @staticmethod
     def backward(ctx, grad):
         (u,) = ctx.saved_tensors
         res_f, res_i, dense, primes, shape = ctx.meta
         g = torch.empty(shape)  # each level is zeroed by the kernel thread that fills it
-        n, levels, nf = grad.shape[0], shape[0], shape[2]
-        go = np.empty((levels, n, nf), dtype=np.float32)
-        _swap_leading(grad.detach().float().contiguous().view(n, levels, nf).numpy(), go)
+        levels, nf = shape[0], shape[2]
+        # (L * F, N) rows, as the forward returned them: the fused MLPs' gradient comes in that layout already
+        go = grad.detach().float().t().contiguous().view(levels, nf, -1)
         _run_by_level(
             _backward_levels,
             levels,
             u.detach().contiguous().numpy(),
-            go,
+            go.numpy(),
             res_f,
             res_i,
             dense,
