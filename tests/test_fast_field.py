@@ -32,7 +32,7 @@ def _reference(enc: HashGridEncoding, x: torch.Tensor) -> torch.Tensor:
                 (v[..., 0] * PRIMES[0]) ^ (v[..., 1] * PRIMES[1]) ^ (v[..., 2] * PRIMES[2])
             ) % enc.table_size
         w = torch.where(CORNERS.bool(), frac[:, None, :], 1.0 - frac[:, None, :]).prod(-1)
-        out.append((enc.tables[level][idx] * w[..., None]).sum(1))
+        out.append((enc.level_table(level)[idx] * w[..., None]).sum(1))
     return torch.cat(out, dim=-1)
 
 

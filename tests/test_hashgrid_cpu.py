@@ -141,3 +141,39 @@ def test_backward_kernel_zeroes_its_levels_first():
         hashgrid_cpu._run_by_level(hashgrid_cpu._backward_levels, 6, u, go, *enc._kernel_args, buf)
     np.testing.assert_array_equal(dirty, clean)
     assert np.abs(clean).sum() > 0
+
+
+def _padded(enc: HashGridEncoding, packed: torch.Tensor) -> torch.Tensor:
+    """The (levels, T, F) layout written before the tables were packed: each level's rows first, zeros after."""
+    out = torch.zeros(enc.levels, enc.table_size, enc.features)
+    for level in range(enc.levels):
+        out[level, : enc.sizes[level]] = packed[enc.offsets[level] : enc.offsets[level + 1]]
+    return out
+
+
+def test_tables_are_packed_and_padded_checkpoints_load_into_them():
+    """Dense levels hold only their (res + 1)^3 rows; the initial values are the padded layout's draw; a state
+    dict and Adam moments in the padded layout load packed, with the same lookups."""
+    torch.manual_seed(5)
+    enc = HashGridEncoding(6, 2, 12, base_resolution=4, max_resolution=96)
+    torch.manual_seed(5)
+    drawn = torch.empty(6, 2**12, 2).uniform_(-1e-4, 1e-4)
+    assert enc.tables.shape == (sum(enc.sizes), 2) and sum(enc.sizes) < 6 * 2**12
+    assert torch.equal(enc.tables.detach(), enc.packed(drawn))
+    with torch.no_grad():
+        enc.tables.normal_()
+    old = {"tables": _padded(enc, enc.tables.detach())}
+    fresh = HashGridEncoding(6, 2, 12, base_resolution=4, max_resolution=96)
+    fresh.load_state_dict(old)
+    assert torch.equal(fresh.tables, enc.tables)
+    x = _points(300)
+    assert torch.equal(fresh(x), enc(x))
+    opt = torch.optim.Adam(fresh.parameters())
+    moments = {"step": torch.tensor(3.0), "exp_avg": old["tables"] * 2, "exp_avg_sq": old["tables"] ** 2}
+    opt.state[fresh.tables] = dict(moments)
+    fresh.pack_optimizer_state(opt)
+    state = opt.state[fresh.tables]
+    assert torch.equal(state["exp_avg"], enc.tables.detach() * 2) and torch.equal(
+        state["step"], moments["step"]
+    )
+    assert torch.equal(state["exp_avg_sq"], enc.tables.detach() ** 2)

@@ -38,6 +38,54 @@ def test_checkpoint_resume_is_exact(tmp_path):
     assert (tmp_path / "resumed" / "loss.png").is_file()
 
 
+def test_resume_from_a_checkpoint_with_padded_hash_tables_is_exact(tmp_path):
+    """Checkpoints written before the hash tables were packed ((levels, T, F), Adam's moments too) resume to
+    the same parameters as the packed ones."""
+    from lightstage.training.checkpoint import save_checkpoint
+    from lightstage.training.hashgrid import HashGridEncoding
+
+    grid = {"levels": 4, "log2_table_size": 12, "base_resolution": 4, "max_resolution": 32, "hidden": 16}
+    cfg = load_config(
+        "cpu",
+        {
+            "optim": {"steps": 4, "batch_rays": 64, "warmup_steps": 1},
+            "checkpoint_every": 2,
+            "model": {"hashgrid": grid},
+            "eval": {"stats_batches": 2},
+            "log_every": 1,
+        },
+    )
+    src = SyntheticSphere(batch_size=64)
+    fit(cfg, src, tmp_path / "straight", src.centre, src.scale, progress=False)
+    fit(cfg, src, tmp_path / "old", src.centre, src.scale, progress=False, stop_at=2)
+    ck = load_checkpoint(tmp_path / "old" / "checkpoint.pt")
+    g = cfg.model.hashgrid
+    enc = HashGridEncoding(
+        g.levels, g.features_per_level, g.log2_table_size, g.base_resolution, g.max_resolution
+    )
+    (key,) = [k for k in ck["model"] if k.endswith("encoding.tables")]
+    assert any(enc.dense) and not all(enc.dense)  # padding rows exist: the layouts differ
+
+    def padded(t: torch.Tensor) -> torch.Tensor:
+        out = torch.zeros(enc.levels, enc.table_size, enc.features)
+        for level in range(enc.levels):
+            out[level, : enc.sizes[level]] = t[enc.offsets[level] : enc.offsets[level + 1]]
+        return out
+
+    ck["model"][key] = padded(ck["model"][key])
+    packed_rows = [s for s in ck["optimizer"]["state"].values() if s["exp_avg"].shape[0] == sum(enc.sizes)]
+    assert len(packed_rows) == 1
+    for name in ("exp_avg", "exp_avg_sq"):
+        packed_rows[0][name] = padded(packed_rows[0][name])
+    save_checkpoint(tmp_path / "old" / "checkpoint.pt", ck)
+    fit(cfg, src, tmp_path / "old", src.centre, src.scale, progress=False)
+    a = load_checkpoint(tmp_path / "straight" / "checkpoint.pt")
+    b = load_checkpoint(tmp_path / "old" / "checkpoint.pt")
+    assert b["step"] == 4 and b["model"][key].shape == a["model"][key].shape
+    for k, v in a["model"].items():
+        assert torch.equal(v, b["model"][k]), k
+
+
 def test_lr_schedule_warmup_and_decay():
     cfg = micro_config(100).optim
     cfg.warmup_steps = 10

@@ -127,19 +127,20 @@ if numba is not None:
                 _hashed_corners(cx, cy, cz, mask, primes[0], primes[1], primes[2], rows[n])
 
     @numba.njit(nogil=True, cache=True)
-    def _forward_levels(u, table, res_f, res_i, dense, primes, levels, out):
+    def _forward_levels(u, table, res_f, res_i, dense, offsets, primes, levels, out):
         """out[l, f, n] = sum_k w_k * table[l, idx_k, f] for the given levels (each level's features are
         contiguous rows over the points: the MLP's input, column-major). Two-feature rows (the common layout)
         run a loop per level kind: dense levels from the cell's first row plus fixed offsets, hashed levels
         from a ring of the rows of the next PREFETCH_AHEAD points, computed once each and prefetched; other
         widths a generic loop."""
-        n_pts, mask, nf = u.shape[0], table.shape[1] - 1, table.shape[2]
+        n_pts, nf = u.shape[0], table.shape[1]
         px_, py_, pz_ = primes[0], primes[1], primes[2]
         w = np.empty(8, dtype=np.float32)
         ring = np.empty((PREFETCH_AHEAD, 8), dtype=np.int64)
         for level in levels:
             rf, ri = res_f[level], res_i[level]
-            tab, dst = table[level], out[level]
+            tab, dst = table[offsets[level] : offsets[level + 1]], out[level]
+            mask = tab.shape[0] - 1  # hashed levels: T rows, a power of two
             if nf != 2:
                 rows, ws = np.empty((n_pts, 8), np.int64), np.empty((n_pts, 8), np.float32)
                 _level_rows(u, rf, ri, dense[level], mask, primes, rows, ws)
@@ -187,17 +188,18 @@ if numba is not None:
                             _prefetch_row(tab, ring[slot, k], 0)
 
     @numba.njit(nogil=True, cache=True)
-    def _backward_levels(u, grad_out, res_f, res_i, dense, primes, levels, grad_table):
+    def _backward_levels(u, grad_out, res_f, res_i, dense, offsets, primes, levels, grad_table):
         """grad_table[l] = sum over points of w_k * grad_out[l, f, n] scattered to rows idx_k, for the given
         levels (each level's slice is zeroed here first, by the thread that owns it); loops as the forward's,
         the prefetch asking for the rows to write."""
-        n_pts, mask, nf = u.shape[0], grad_table.shape[1] - 1, grad_table.shape[2]
+        n_pts, nf = u.shape[0], grad_table.shape[1]
         px_, py_, pz_ = primes[0], primes[1], primes[2]
         w = np.empty(8, dtype=np.float32)
         ring = np.empty((PREFETCH_AHEAD, 8), dtype=np.int64)
         for level in levels:
             rf, ri = res_f[level], res_i[level]
-            gt, src = grad_table[level], grad_out[level]
+            gt, src = grad_table[offsets[level] : offsets[level + 1]], grad_out[level]
+            mask = gt.shape[0] - 1
             gt[:] = 0.0
             if nf != 2:
                 rows, ws = np.empty((n_pts, 8), np.int64), np.empty((n_pts, 8), np.float32)
@@ -275,44 +277,35 @@ def _run_by_level(kernel, levels: int, *args) -> None:
 
 
 class FusedLookup(torch.autograd.Function):
-    """(N, 3) unit-cube positions u in [0, 1] and (L, T, F) float32 tables -> (N, L * F) features on CPU, given
-    per level its resolution (float32 and int64) and whether it is dense, and the hash primes mod T; with
-    the table gradient from the same kernel arithmetic. Positions get no gradient (they are not optimised)."""
+    """(N, 3) unit-cube positions u in [0, 1] and the packed (rows, F) float32 tables -> (N, L * F) features on
+    CPU, given per level its resolution (float32 and int64), whether it is dense, and its first row (L + 1
+    offsets: level l holds rows [o_l, o_l+1)), and the hash primes mod T; with the table gradient from the same
+    kernel arithmetic. Positions get no gradient (they are not optimised)."""
 
     @staticmethod
-    def forward(ctx, tables, u, res_f, res_i, dense, primes):
+    def forward(ctx, tables, u, res_f, res_i, dense, offsets, primes):
         if not bool(
             torch.isfinite(u).all()
         ):  # a NaN cell index would read outside the table (no bounds checks)
             raise ValueError("hash grid: non-finite sample positions")
         un = u.detach().contiguous().numpy()
         tab = tables.detach().contiguous().numpy()
-        levels, _, nf = tab.shape
+        levels, nf = len(res_f), tab.shape[1]
         out = torch.empty(levels * nf, un.shape[0])  # (L, F, N): each level's features as contiguous rows
-        _run_by_level(
-            _forward_levels, levels, un, tab, res_f, res_i, dense, primes, out.view(levels, nf, -1).numpy()
-        )
+        kernel_args = (res_f, res_i, dense, offsets, primes)
+        _run_by_level(_forward_levels, levels, un, tab, *kernel_args, out.view(levels, nf, -1).numpy())
         ctx.save_for_backward(u)
-        ctx.meta = (res_f, res_i, dense, primes, tables.shape)
+        ctx.meta = (kernel_args, tables.shape)
         return out.t()  # (N, L * F), column-major: BLAS reads it as is (no transposing copy)
 
     @staticmethod
     def backward(ctx, grad):
         (u,) = ctx.saved_tensors
-        res_f, res_i, dense, primes, shape = ctx.meta
+        kernel_args, shape = ctx.meta
         g = torch.empty(shape)  # each level is zeroed by the kernel thread that fills it
-        levels, nf = shape[0], shape[2]
+        levels, nf = len(kernel_args[0]), shape[1]
         # (L * F, N) rows, as the forward returned them: the fused MLPs' gradient comes in that layout already
         go = grad.detach().float().t().contiguous().view(levels, nf, -1)
-        _run_by_level(
-            _backward_levels,
-            levels,
-            u.detach().contiguous().numpy(),
-            go.numpy(),
-            res_f,
-            res_i,
-            dense,
-            primes,
-            g.numpy(),
-        )
-        return g, None, None, None, None, None
+        un = u.detach().contiguous().numpy()
+        _run_by_level(_backward_levels, levels, un, go.numpy(), *kernel_args, g.numpy())
+        return g, None, None, None, None, None, None

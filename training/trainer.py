@@ -33,6 +33,7 @@ from lightstage.training.checkpoint import (
     set_rng_state,
 )
 from lightstage.training.config import OptimConfig, TrainConfig
+from lightstage.training.hashgrid import HashGridEncoding
 from lightstage.training.inputs import BatchSource
 from lightstage.training.light_model import light_frame
 from lightstage.training.losses import measured_epsilon, total_loss
@@ -166,6 +167,9 @@ def fit(
         try:
             model.load_state_dict(ck["model"])
             opt.load_state_dict(ck["optimizer"])
+            for module in model.modules():  # Adam's moments of a padded hash table, as the table is packed
+                if isinstance(module, HashGridEncoding):
+                    module.pack_optimizer_state(opt)
         except (RuntimeError, ValueError, KeyError) as e:  # the checkpoint's tensors do not fit this model
             reason = str(e).strip().splitlines()[0][:300] if str(e).strip() else type(e).__name__
             raise LightstageError(f"{ckpt_path}: does not fit this model ({reason})") from None
