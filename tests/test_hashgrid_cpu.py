@@ -144,7 +144,7 @@ def test_backward_kernel_zeroes_its_levels_first():
 
 
 def _padded(enc: HashGridEncoding, packed: torch.Tensor) -> torch.Tensor:
-    """The (levels, T, F) layout written before the tables were packed: each level's rows first, zeros after."""
+    """The (levels, T, F) layout written before the tables were packed: each level's rows, then zeros."""
     out = torch.zeros(enc.levels, enc.table_size, enc.features)
     for level in range(enc.levels):
         out[level, : enc.sizes[level]] = packed[enc.offsets[level] : enc.offsets[level + 1]]

@@ -61,8 +61,8 @@ class HashGridEncoding(nn.Module):
     """(N, 3) points in [-1, 1]^3 -> (N, levels * features_per_level) interpolated hash-table features.
 
     All levels are looked up in one gather: the tables are one packed (sum of sizes, F) matrix, each level's
-    indices offset by its first row (`_WeightedLookup`). Index and weight arithmetic runs on (levels, N) arrays, one per
-    corner, with the hash in int32 (see `forward`)."""
+    indices offset by its first row (`_WeightedLookup`). Index and weight arithmetic runs on (levels, N)
+    arrays, one per corner, with the hash in int32 (see `forward`)."""
 
     def __init__(
         self, levels: int, features: int, log2_table_size: int, base_resolution: int, max_resolution: int

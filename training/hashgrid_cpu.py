@@ -112,18 +112,35 @@ if numba is not None:
         w[0], w[1], w[2], w[3] = w00 * gz, w10 * gz, w01 * gz, w11 * gz
         w[4], w[5], w[6], w[7] = w00 * fz, w10 * fz, w01 * fz, w11 * fz
 
+    @numba.njit(nogil=True, cache=True, inline="always")
+    def _dense_point(u, n, rf, ri, w):
+        """Dense levels: the row of point n's corner 0 (x + (r + 1) * (y + (r + 1) * z)); its weights into w."""
+        cx, cy, cz, fx, fy, fz = _corner_cells(u, n, rf, ri)
+        _corner_weights(fx, fy, fz, w)
+        return cx + (ri + 1) * (cy + (ri + 1) * cz)
+
+    @numba.njit(nogil=True, cache=True, inline="always")
+    def _ring_in(u, m, rf, ri, mask, px_, py_, pz_, ring, tab, write):
+        """Hashed levels: point m's corner rows into ring slot m % PREFETCH_AHEAD, and ask the cache for them
+        (`write` 1: for writing). Point n's slot is refilled with point n + PREFETCH_AHEAD once n is done."""
+        slot = m & (PREFETCH_AHEAD - 1)
+        cx, cy, cz, _, _, _ = _corner_cells(u, m, rf, ri)
+        _hashed_corners(cx, cy, cz, mask, px_, py_, pz_, ring[slot])
+        for k in range(8):
+            _prefetch_row(tab, ring[slot, k], write)
+
     @numba.njit(nogil=True, cache=True)
     def _level_rows(u, rf, ri, dense, mask, primes, rows, w):
         """Generic path (any features per row): every point's 8 corner rows and weights, (N, 8) each."""
         offsets = _dense_offsets(ri + 1)
         for n in range(u.shape[0]):
-            cx, cy, cz, fx, fy, fz = _corner_cells(u, n, rf, ri)
-            _corner_weights(fx, fy, fz, w[n])
             if dense:
-                r0 = cx + (ri + 1) * (cy + (ri + 1) * cz)
+                r0 = _dense_point(u, n, rf, ri, w[n])
                 for k in range(8):
                     rows[n, k] = r0 + offsets[k]
             else:
+                cx, cy, cz, fx, fy, fz = _corner_cells(u, n, rf, ri)
+                _corner_weights(fx, fy, fz, w[n])
                 _hashed_corners(cx, cy, cz, mask, primes[0], primes[1], primes[2], rows[n])
 
     @numba.njit(nogil=True, cache=True)
@@ -151,12 +168,9 @@ if numba is not None:
                         for f in range(nf):
                             dst[f, n] += ws[n, k] * tab[rows[n, k], f]
             elif dense[level]:
-                s = ri + 1
-                off = _dense_offsets(s)
+                off = _dense_offsets(ri + 1)
                 for n in range(n_pts):
-                    cx, cy, cz, fx, fy, fz = _corner_cells(u, n, rf, ri)
-                    base = cx + s * (cy + s * cz)
-                    _corner_weights(fx, fy, fz, w)
+                    base = _dense_point(u, n, rf, ri, w)
                     a0 = np.float32(0.0)
                     a1 = np.float32(0.0)
                     for k in range(8):
@@ -166,9 +180,8 @@ if numba is not None:
                     dst[0, n] = a0
                     dst[1, n] = a1
             else:
-                for n in range(min(PREFETCH_AHEAD, n_pts)):
-                    cx, cy, cz, _, _, _ = _corner_cells(u, n, rf, ri)
-                    _hashed_corners(cx, cy, cz, mask, px_, py_, pz_, ring[n])
+                for m in range(min(PREFETCH_AHEAD, n_pts)):
+                    _ring_in(u, m, rf, ri, mask, px_, py_, pz_, ring, tab, 0)
                 for n in range(n_pts):
                     slot = n & (PREFETCH_AHEAD - 1)
                     cx, cy, cz, fx, fy, fz = _corner_cells(u, n, rf, ri)
@@ -181,11 +194,8 @@ if numba is not None:
                         a1 += w[k] * tab[r, 1]
                     dst[0, n] = a0
                     dst[1, n] = a1
-                    if n + PREFETCH_AHEAD < n_pts:  # n's slot, now free: the point PREFETCH_AHEAD ahead
-                        qx, qy, qz, _, _, _ = _corner_cells(u, n + PREFETCH_AHEAD, rf, ri)
-                        _hashed_corners(qx, qy, qz, mask, px_, py_, pz_, ring[slot])
-                        for k in range(8):
-                            _prefetch_row(tab, ring[slot, k], 0)
+                    if n + PREFETCH_AHEAD < n_pts:  # n's slot, now free
+                        _ring_in(u, n + PREFETCH_AHEAD, rf, ri, mask, px_, py_, pz_, ring, tab, 0)
 
     @numba.njit(nogil=True, cache=True)
     def _backward_levels(u, grad_out, res_f, res_i, dense, offsets, primes, levels, grad_table):
@@ -209,21 +219,17 @@ if numba is not None:
                         for f in range(nf):
                             gt[rows[n, k], f] += ws[n, k] * src[f, n]
             elif dense[level]:
-                s = ri + 1
-                off = _dense_offsets(s)
+                off = _dense_offsets(ri + 1)
                 for n in range(n_pts):
-                    cx, cy, cz, fx, fy, fz = _corner_cells(u, n, rf, ri)
-                    base = cx + s * (cy + s * cz)
-                    _corner_weights(fx, fy, fz, w)
+                    base = _dense_point(u, n, rf, ri, w)
                     g0, g1 = src[0, n], src[1, n]
                     for k in range(8):
                         r = base + off[k]
                         gt[r, 0] += w[k] * g0
                         gt[r, 1] += w[k] * g1
             else:
-                for n in range(min(PREFETCH_AHEAD, n_pts)):
-                    cx, cy, cz, _, _, _ = _corner_cells(u, n, rf, ri)
-                    _hashed_corners(cx, cy, cz, mask, px_, py_, pz_, ring[n])
+                for m in range(min(PREFETCH_AHEAD, n_pts)):
+                    _ring_in(u, m, rf, ri, mask, px_, py_, pz_, ring, gt, 1)
                 for n in range(n_pts):
                     slot = n & (PREFETCH_AHEAD - 1)
                     cx, cy, cz, fx, fy, fz = _corner_cells(u, n, rf, ri)
@@ -234,10 +240,7 @@ if numba is not None:
                         gt[r, 0] += w[k] * g0
                         gt[r, 1] += w[k] * g1
                     if n + PREFETCH_AHEAD < n_pts:
-                        qx, qy, qz, _, _, _ = _corner_cells(u, n + PREFETCH_AHEAD, rf, ri)
-                        _hashed_corners(qx, qy, qz, mask, px_, py_, pz_, ring[slot])
-                        for k in range(8):
-                            _prefetch_row(gt, ring[slot, k], 1)
+                        _ring_in(u, n + PREFETCH_AHEAD, rf, ri, mask, px_, py_, pz_, ring, gt, 1)
 
 
 def _pool(workers: int) -> ThreadPoolExecutor:
@@ -277,10 +280,10 @@ def _run_by_level(kernel, levels: int, *args) -> None:
 
 
 class FusedLookup(torch.autograd.Function):
-    """(N, 3) unit-cube positions u in [0, 1] and the packed (rows, F) float32 tables -> (N, L * F) features on
-    CPU, given per level its resolution (float32 and int64), whether it is dense, and its first row (L + 1
-    offsets: level l holds rows [o_l, o_l+1)), and the hash primes mod T; with the table gradient from the same
-    kernel arithmetic. Positions get no gradient (they are not optimised)."""
+    """(N, 3) unit-cube positions u in [0, 1] and the packed (rows, F) float32 tables -> (N, L * F) features
+    on CPU, given per level its resolution (float32 and int64), whether it is dense, and its first row (L + 1
+    offsets: level l holds rows [o_l, o_l+1)), and the hash primes mod T; with the table gradient from the
+    same kernel arithmetic. Positions get no gradient (they are not optimised)."""
 
     @staticmethod
     def forward(ctx, tables, u, res_f, res_i, dense, offsets, primes):
