@@ -5,10 +5,12 @@ textured object, a saturated bulb, a flare), then measures in one run:
   * the CPU model, and both decoders' decode-only cost per frame, one library thread: OpenEXR's whole-frame
     `File` (the floor; the stage's default `decoder: openexr`) and OpenImageIO in 32-row bands (`decoder: bands`);
   * a per-step breakdown of the per-frame work (read-ahead, decode, downscale, write, statistics), one thread,
+    with the downscale also through the OpenCV path the numba kernels replaced (`downscale_opencv_over_numba`),
     and the per-frame path of each decoder as the chunk task runs it;
   * the whole stage (`run_preprocess`) on a dask LocalCluster with 1 and with 2 single-threaded worker
     processes: wall time per frame, in-task time per frame, speed-up, peak RSS per worker; the decode floor
     again right before and after the 1-worker run, and on the other core throughout it (same minutes);
+  * with `--ab-area-kernel N`, N pairs of 1-worker stage runs with the downscale's kernels off and on;
   * peak RSS per worker again with views twice as long (memory must not grow with the frames per view).
 Prints a JSON summary (and the ratios against the targets). Frames beyond the distinct ones are symlinks, so
 decoding cost is real while generation stays short.
@@ -206,6 +208,7 @@ def breakdown(paths: list[Path], tmp: Path) -> dict[str, dict[str, float]]:
     chunk task's reused buffers (frame_task.FrameBuffers); the write is timed for every lossless compression."""
     from lightstage.exr_header import prefetch_file
     from lightstage.frames import COMPRESSIONS
+    from lightstage.preprocess import area_kernel
     from lightstage.preprocess.downscale import decode_downscale_factors, decode_raw, downscale
     from lightstage.preprocess.flare import lit_threshold, thumbnail
     from lightstage.preprocess.frame_task import FrameBuffers, check_finite
@@ -231,6 +234,9 @@ def breakdown(paths: list[Path], tmp: Path) -> dict[str, dict[str, float]]:
         )
         timed("read_ahead", lambda p=p: prefetch_file(p, 120.0))  # the read timeout's prefetch
         px = timed("decode", lambda p=p: decode_raw(p, RES))  # decoder: openexr ...
+        old = area_kernel.set_enabled(False)  # the OpenCV path the numba kernels replaced, for the ratio
+        timed("downscale_opencv", lambda px=px: downscale(px, 4.4019, 32, out=out))
+        area_kernel.set_enabled(old)
         small = timed("downscale", lambda px=px: downscale(px, 4.4019, 32, out=out))  # ... then the downscale
         del px
 
@@ -373,6 +379,22 @@ def run_stage(
     }
 
 
+def area_kernel_ab(capture: Path, tmp: Path, args: argparse.Namespace) -> dict:
+    """1-worker stage runs with the downscale's numba kernels off and on, alternated (off, on, on, off, ...),
+    and the ratio of the medians of their task CPU per frame (the workers read LIGHTSTAGE_AREA_KERNEL)."""
+    samples: dict[str, list[float]] = {"cv2": [], "numba": []}
+    for i in range(args.ab_area_kernel):
+        for kind in ("cv2", "numba") if i % 2 == 0 else ("numba", "cv2"):
+            os.environ["LIGHTSTAGE_AREA_KERNEL"] = kind
+            try:
+                run = run_stage(capture, tmp / f"ab_{kind}{i}", 1, args.chunk_lights, args.compression)
+            finally:
+                del os.environ["LIGHTSTAGE_AREA_KERNEL"]
+            samples[kind].append(run["task_cpu_per_frame_s"])
+    med = {k: float(np.median(v)) for k, v in samples.items()}
+    return {"task_cpu_per_frame_s": samples, "cv2_over_numba": round(med["cv2"] / med["numba"], 3)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--distinct", type=int, default=3, help="distinct generated frames (default 3)")
@@ -402,6 +424,12 @@ def main() -> None:
         type=int,
         default=0,
         help="lights of the longer-view memory run (default 2 x --lights)",
+    )
+    ap.add_argument(
+        "--ab-area-kernel",
+        type=int,
+        default=0,
+        help="pairs of extra 1-worker stage runs with the downscale's numba kernels off and on (default 0)",
     )
     args = ap.parse_args()
     if args.compression is None:
@@ -438,6 +466,7 @@ def main() -> None:
             "openexr": cpu["read_ahead"] + cpu["decode"] + cpu["downscale"],
             "bands": cpu["read_ahead"] + cpu["decode+downscale_bands"],
         }
+        result["downscale_opencv_over_numba"] = round(cpu["downscale_opencv"] / cpu["downscale"], 3)
         result["decode_path_cpu_s"] = {k: round(v, 4) for k, v in paths_cpu.items()}
         result["decode_path_over_floor"] = {k: round(v / dec_cpu, 3) for k, v in paths_cpu.items()}
         base = paths_cpu["openexr"] + cpu["half+check"] + cpu["statistics"]
@@ -478,6 +507,8 @@ def main() -> None:
                     round(max(c for _, c in concurrent.samples), 4),
                 ],
             }
+        if args.ab_area_kernel:
+            result["area_kernel_ab"] = area_kernel_ab(capture, tmp, args)
         if not args.skip_rss_check:
             longer = make_capture(tmp / "capture2", distinct, 1, args.long_lights or 2 * args.lights)
             result["stage_longer_view"] = run_stage(

@@ -4,12 +4,13 @@ Two decoders give identical results (`DECODERS`, config `decoder`): `openexr` de
 OpenEXR (`decode_raw`) and then downscales it in row bands (`downscale`); `bands` decodes row bands with
 OpenImageIO's scanline reads (`decode_downscale_factors`), so the full frame is never in memory. Which one is
 cheaper depends on the machine (docs/benchmarks.md), so the default `auto` measures both in each worker
-(`decoder_choice.py`). Row bands are converted half -> float32 with
-PyTorch (vectorised; numpy's half conversion is ~20x slower) into a reused buffer and averaged with
-`cv2.resize(INTER_AREA)`, whose integer-factor path sums each 4x4 block in float32 and scales by 1/16 (a
-power of two, so no extra rounding). Saturation is tested on the raw half bits: for non-negative halfs the
-int16 view orders like the value, so "any of the 16 source samples >= cutoff" needs no float conversion and
-only bands that reach the cutoff pay for the per-block test.
+(`decoder_choice.py`). Half row bands at the processed factor go through
+numba kernels (`area_kernel.py`); other bands are converted to float32 with PyTorch (numpy's half conversion
+is ~20x slower) into a reused buffer and averaged with `cv2.resize(INTER_AREA)`, whose integer-factor path
+sums each 4x4 block in float32 and scales by 1/16 (a power of two, so no extra rounding): the kernels
+reproduce its order, so both give the same bits. Saturation is tested on the raw half bits: for non-negative
+halfs the int16 view orders like the value, so "any of the 16 source samples >= cutoff" needs no float
+conversion and only bands that reach the cutoff pay for the per-block test.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import numpy as np
 from lightstage.errors import LightstageError
 from lightstage.exr_header import check_exr_header, read_exr_header
 from lightstage.frames import oiio_error, set_exr_limits
+from lightstage.preprocess import area_kernel
 from lightstage.workdir import DOWNSCALE
 
 
@@ -103,8 +105,6 @@ class BandDownscaler:
         factor: int = DOWNSCALE,
         out: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> None:
-        import torch
-
         W, H = size
         if H % factor or W % factor:
             raise LightstageError(f"frame {W}x{H}: size must be a multiple of {factor}")
@@ -122,7 +122,8 @@ class BandDownscaler:
         ):
             raise LightstageError(f"output buffers do not fit a {W}x{H} frame downscaled {factor}x")
         self._max_rows = min(band_rows, H)
-        self._buf = torch.empty((self._max_rows if factor > 1 else 0, W, 3), dtype=torch.float32)
+        self._buf = None  # the float32 band buffer of the OpenCV path, made when first needed
+        self._kernel = area_kernel.AreaKernel(W) if area_kernel.available() else None
         self._cut_bits = int(saturation_half(cutoff).view(np.int16))
         self._row = 0
         self.non_finite = self.negative = 0
@@ -137,10 +138,19 @@ class BandDownscaler:
         if band.shape[1:] != (W, 3) or n % f or n > self._max_rows or y + n > H:
             raise LightstageError(f"band of shape {band.shape} does not fit a {W}x{H} frame at row {y}")
         rows = slice(y // f, (y + n) // f)
+        kernel = self._kernel
+        if kernel is not None and not band.flags.c_contiguous:
+            band = np.ascontiguousarray(band)  # e.g. RGB of an RGBA decode: a band's copy, not a frame's
+        if kernel is not None and f == 4 and band.dtype == np.float16:
+            self._add_half4(kernel, band, rows)
+            self._row = y + n
+            return
         if f == 1:  # the identity (an SfM image at raw size): convert straight into the output
             buf = torch.from_numpy(self.rgb[rows])
             buf.copy_(torch.from_numpy(band))
         else:
+            if self._buf is None:
+                self._buf = torch.empty((self._max_rows, W, 3), dtype=torch.float32)
             buf = self._buf[:n]
             buf.copy_(torch.from_numpy(band))
             cv2.resize(buf.numpy(), (W // f, n // f), dst=self.rgb[rows], interpolation=cv2.INTER_AREA)
@@ -150,21 +160,37 @@ class BandDownscaler:
             # a sign bit (int16 < 0) or an all-ones exponent (>= 0x7C00: Inf/NaN) sends the band to be counted
             bits = band.view(np.int16)
             lo, hi = (int(v) for v in torch.aminmax(torch.from_numpy(bits)))
-            if hi >= self._cut_bits:
-                self.saturated[rows] = _block_any((bits >= self._cut_bits).any(axis=-1), f)
-            else:
+            if hi < self._cut_bits:
                 self.saturated[rows] = False
+            elif kernel is not None:
+                kernel.block_any_ge(band, self.saturated[rows], self._cut_bits, f)
+            else:
+                self.saturated[rows] = _block_any((bits >= self._cut_bits).any(axis=-1), f)
             if lo < 0 or hi >= 0x7C00:
                 self._count_bad(buf)
         else:
             lo, hi = (float(v) for v in torch.aminmax(buf))
-            if hi >= self.cutoff:
-                self.saturated[rows] = _block_any((buf.numpy() >= self.cutoff).any(axis=-1), f)
-            else:
+            if hi < self.cutoff:
                 self.saturated[rows] = False
+            elif kernel is not None and band.dtype == np.float32:
+                kernel.block_any_ge(band, self.saturated[rows], self.cutoff, f)
+            else:
+                self.saturated[rows] = _block_any((buf.numpy() >= self.cutoff).any(axis=-1), f)
             if not (lo >= 0.0 and hi < np.inf):
                 self._count_bad(buf)
         self._row = y + n
+
+    def _add_half4(self, kernel: area_kernel.AreaKernel, band: np.ndarray, rows: slice) -> None:
+        """The numba path of `add` for a contiguous half band at factor 4: the same bits as the OpenCV path."""
+        lo, hi = kernel.area4_half(band, self.rgb[rows])
+        if hi < self._cut_bits:
+            self.saturated[rows] = False
+        else:
+            kernel.block_any_ge(band, self.saturated[rows], self._cut_bits, 4)
+        if lo < 0 or hi >= 0x7C00:
+            non_finite, negative = area_kernel.count_bad_half(band)
+            self.non_finite += non_finite
+            self.negative += negative
 
     def _count_bad(self, buf) -> None:  # noqa: ANN001 - a torch tensor
         """Count the band's NaN/Inf and negative samples (as `lightstage.frames.check_pixels` counts them)."""

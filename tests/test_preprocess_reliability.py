@@ -87,6 +87,22 @@ def test_both_decoders_give_identical_frames_statistics_and_sfm_images(
         assert [k for k in a if a[k] != b[k]] == []
 
 
+def test_the_downscale_kernels_give_the_outputs_of_the_opencv_path(
+    small_capture: Path, clean: dict[str, bytes], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Frames, saturation masks, statistics and view outputs are byte-identical with the numba kernels
+    (`clean`) and without them (PyTorch + cv2.resize + numpy, the code before the kernels)."""
+    from lightstage.preprocess import area_kernel
+
+    assert area_kernel.available()
+    monkeypatch.setattr(area_kernel._SWITCH, "_enabled", False)
+    work = _work(tmp_path / "work", small_capture)
+    run_preprocess(work, PreprocessConfig(chunk_lights=5), progress=False)
+    b = _snapshot(work)
+    assert sorted(clean) == sorted(b)
+    assert [k for k in clean if clean[k] != b[k]] == []
+
+
 # ---- environment faults are not remembered ---------------------------------------------------------------------
 def test_permission_error_fixed_between_runs_gives_the_clean_outputs(
     small_capture: Path, clean: dict[str, bytes], tmp_path: Path, monkeypatch: pytest.MonkeyPatch

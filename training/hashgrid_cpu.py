@@ -19,6 +19,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import torch
 
+from lightstage.kernel_switch import KernelSwitch
+
 try:
     import numba
     from llvmlite import ir
@@ -34,22 +36,12 @@ except ImportError:  # pragma: no cover - numba is a dependency; the PyTorch pat
 PREFETCH_AHEAD = 16
 assert PREFETCH_AHEAD & (PREFETCH_AHEAD - 1) == 0
 
-_ENABLED = os.environ.get("LIGHTSTAGE_HASHGRID_KERNEL", "numba") != "torch"
+_SWITCH = KernelSwitch("LIGHTSTAGE_HASHGRID_KERNEL", "torch", numba is not None)
+available = _SWITCH.available  # numba importable and not switched off
+set_enabled = _SWITCH.set_enabled  # benches and tests compare both paths
 _POOL: ThreadPoolExecutor | None = None
 _POOL_SIZE = 0
 _POOL_LOCK = threading.Lock()
-
-
-def available() -> bool:
-    """True when the fused CPU kernels can run (numba importable and not switched off)."""
-    return numba is not None and _ENABLED
-
-
-def set_enabled(enabled: bool) -> bool:
-    """Switch the fused CPU kernels on or off (benches and tests compare both paths); returns the old state."""
-    global _ENABLED
-    old, _ENABLED = _ENABLED, bool(enabled)
-    return old
 
 
 if numba is not None:
