@@ -134,5 +134,5 @@ class AreaKernel:
         band compares its int16 bits with an int16 `cut`, a float32 band its values)."""
         n = band.shape[0]
         src = band.view(np.int16) if band.dtype == np.float16 else band
-        cut = np.int16(cut) if band.dtype == np.float16 else np.float32(cut)
+        cut = np.int16(cut) if band.dtype == np.float16 else np.float32(cut)  # numpy (NEP 50) compares so
         _block_any_ge(src.reshape(n, -1), out, cut, factor, self._rows, self._pixels)

@@ -84,3 +84,17 @@ def test_the_environment_switches_the_kernels_off(monkeypatch: pytest.MonkeyPatc
     switch = KernelSwitch("LIGHTSTAGE_AREA_KERNEL", "cv2", True)
     assert switch.available() and not KernelSwitch("X", "off", False).available()
     assert switch.set_enabled(False) is True and not switch.available()
+
+
+def test_float_saturation_compares_with_the_cutoff_as_given() -> None:
+    """At the cutoff's float32 rounding (below the cutoff here) the kernel decides as the numpy path did: numpy
+    compares a float32 array with a Python float in float32 (NEP 50), so that sample counts as saturated."""
+    cutoff = 4.4019
+    below = np.float32(cutoff)
+    assert float(below) < cutoff
+    px = np.zeros((8, 8, 3), np.float32)
+    px[1, 1, 0] = below
+    px[5, 5, 2] = np.nextafter(below, np.float32(10))
+    fast, slow = _both(px, cutoff, band_rows=8)
+    _assert_same(fast, slow)
+    assert fast.saturated.tolist() == [[True, False], [False, True]]
