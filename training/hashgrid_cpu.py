@@ -121,6 +121,19 @@ if numba is not None:
         for k in range(8):
             _prefetch_row(tab, ring[slot, k], write)
 
+    @numba.njit(nogil=True, cache=True, inline="always")
+    def _ring_fill(u, n_pts, rf, ri, mask, px_, py_, pz_, ring, tab, write):
+        """Hashed levels: the ring's first slots with points 0 .. PREFETCH_AHEAD - 1 (before a level's loop)."""
+        for m in range(min(PREFETCH_AHEAD, n_pts)):
+            _ring_in(u, m, rf, ri, mask, px_, py_, pz_, ring, tab, write)
+
+    @numba.njit(nogil=True, cache=True, inline="always")
+    def _hashed_point(u, n, rf, ri, w):
+        """Hashed levels: the ring slot that holds point n's corner rows; its weights into w."""
+        _, _, _, fx, fy, fz = _corner_cells(u, n, rf, ri)
+        _corner_weights(fx, fy, fz, w)
+        return n & (PREFETCH_AHEAD - 1)
+
     @numba.njit(nogil=True, cache=True)
     def _level_rows(u, rf, ri, dense, mask, primes, rows, w):
         """Generic path (any features per row): every point's 8 corner rows and weights, (N, 8) each."""
@@ -172,12 +185,9 @@ if numba is not None:
                     dst[0, n] = a0
                     dst[1, n] = a1
             else:
-                for m in range(min(PREFETCH_AHEAD, n_pts)):
-                    _ring_in(u, m, rf, ri, mask, px_, py_, pz_, ring, tab, 0)
+                _ring_fill(u, n_pts, rf, ri, mask, px_, py_, pz_, ring, tab, 0)
                 for n in range(n_pts):
-                    slot = n & (PREFETCH_AHEAD - 1)
-                    cx, cy, cz, fx, fy, fz = _corner_cells(u, n, rf, ri)
-                    _corner_weights(fx, fy, fz, w)
+                    slot = _hashed_point(u, n, rf, ri, w)
                     a0 = np.float32(0.0)
                     a1 = np.float32(0.0)
                     for k in range(8):
@@ -220,12 +230,9 @@ if numba is not None:
                         gt[r, 0] += w[k] * g0
                         gt[r, 1] += w[k] * g1
             else:
-                for m in range(min(PREFETCH_AHEAD, n_pts)):
-                    _ring_in(u, m, rf, ri, mask, px_, py_, pz_, ring, gt, 1)
+                _ring_fill(u, n_pts, rf, ri, mask, px_, py_, pz_, ring, gt, 1)
                 for n in range(n_pts):
-                    slot = n & (PREFETCH_AHEAD - 1)
-                    cx, cy, cz, fx, fy, fz = _corner_cells(u, n, rf, ri)
-                    _corner_weights(fx, fy, fz, w)
+                    slot = _hashed_point(u, n, rf, ri, w)
                     g0, g1 = src[0, n], src[1, n]
                     for k in range(8):
                         r = ring[slot, k]
