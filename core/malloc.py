@@ -26,14 +26,33 @@ _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameters
 
 
 @functools.cache
+def _libc() -> ctypes.CDLL | None:
+    """This process's C library, or None where it cannot be loaded."""
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c"))
+    except (OSError, TypeError):
+        return None
+
+
+@functools.cache
 def keep_large_blocks() -> bool:
     """Apply the thresholds to this running process (glibc's `mallopt`); False where there is no glibc."""
-    name = ctypes.util.find_library("c")
-    try:
-        libc = ctypes.CDLL(name)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError, TypeError):
+    mallopt = getattr(_libc(), "mallopt", None)
+    if mallopt is None:
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
     mmap_set = bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD))
     return bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD)) and mmap_set
+
+
+def release_free_heap() -> bool:
+    """Give the heap's free memory back to the system now (glibc's `malloc_trim(0)`); False where there is no
+    glibc. For a process under the thresholds above that stops allocating its large blocks: without it, up to
+    1 GiB of freed blocks stays resident for the rest of the process (a worker whose decoder probe decoded whole
+    frames, then kept the banded decoder: ~270 MB, docs/benchmarks.md)."""
+    trim = getattr(_libc(), "malloc_trim", None)
+    if trim is None:
+        return False
+    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
+    trim(0)
+    return True

@@ -11,6 +11,8 @@ into the chunk records and the report.
 Runs, not alternating frames: a worker reuses the freed frame block for the next whole-frame decode (the
 workers' malloc settings), and a band decode in between breaks that reuse, so alternating frames measured
 OpenEXR at up to 2x its steady cost (1.3-1.4 against 0.65-0.72 CPU-s on the AMD VM, docs/benchmarks.md).
+Once the choice is made the probe's freed blocks go back to the system: under those settings a worker that kept
+the bands would otherwise hold the probe's freed whole frame (~270 MB) to the end (Intel Xeon VM, 2026-12-07).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import time
 from collections.abc import Callable
 from typing import TypeVar
 
+from lightstage.malloc import release_free_heap
 from lightstage.preprocess.downscale import DECODERS
 
 AUTO = "auto"
@@ -52,9 +55,12 @@ class DecoderChooser:
     """Per-process state of `decoder: auto`: the samples taken so far and the decoder chosen from them."""
 
     def __init__(
-        self, probe_frames: int = PROBE_FRAMES, clock: Callable[[], float] = time.process_time
+        self,
+        probe_frames: int = PROBE_FRAMES,
+        clock: Callable[[], float] = time.process_time,
+        on_chosen: Callable[[], object] = release_free_heap,
     ) -> None:
-        self.probe_frames, self.clock = probe_frames, clock
+        self.probe_frames, self.clock, self.on_chosen = probe_frames, clock, on_chosen
         self.samples: dict[str, list[float]] = {d: [] for d in DECODERS}
         self.chosen: str | None = None
         self.counts: dict[str, int] = {d: 0 for d in DECODERS}  # frames decoded by this process, per decoder
@@ -71,6 +77,8 @@ class DecoderChooser:
             result = decode(decoder)
             self.samples[decoder].append(self.clock() - cpu0)
             self.chosen = choose(self.samples, self.probe_frames)
+            if self.chosen is not None:
+                self.on_chosen()  # once: the probe's freed blocks are not kept for the process's life
         self.counts[decoder] += 1
         return result, decoder
 

@@ -14,7 +14,8 @@ from lightstage.preprocess.downscale import decode_downscale_factors, decode_raw
 
 
 def _chooser_with_costs(costs: dict[str, float]) -> tuple[DecoderChooser, list[str]]:
-    """A chooser whose clock advances by each decoder's cost while it decodes."""
+    """A chooser whose clock advances by each decoder's cost while it decodes; `ran` gets "chosen" where the
+    chooser releases the probe's freed memory."""
     now = [0.0]
     ran: list[str] = []
 
@@ -23,7 +24,7 @@ def _chooser_with_costs(costs: dict[str, float]) -> tuple[DecoderChooser, list[s
         now[0] += costs[decoder]
         return decoder
 
-    chooser = DecoderChooser(clock=lambda: now[0])
+    chooser = DecoderChooser(clock=lambda: now[0], on_chosen=lambda: ran.append("chosen"))
     chooser.decode = decode  # type: ignore[attr-defined]
     return chooser, ran
 
@@ -37,9 +38,12 @@ def test_auto_times_each_decoder_in_a_run_then_keeps_the_cheaper(cheaper: str) -
         result, used = chooser.run("auto", chooser.decode)  # type: ignore[attr-defined]
         assert result == used
     probing = 2 * (PROBE_FRAMES + 1)
-    # one run of consecutive frames per decoder: a whole-frame decode is timed reusing its own freed block
-    assert ran[:probing] == ["openexr"] * (PROBE_FRAMES + 1) + ["bands"] * (PROBE_FRAMES + 1)
-    assert chooser.chosen == cheaper and set(ran[probing:]) == {cheaper}
+    # one run of consecutive frames per decoder: a whole-frame decode is timed reusing its own freed block;
+    # then, once, the probe's freed blocks are given back (a worker keeping the bands would hold a whole frame)
+    assert ran[: probing + 1] == ["openexr"] * (PROBE_FRAMES + 1) + ["bands"] * (PROBE_FRAMES + 1) + [
+        "chosen"
+    ]
+    assert chooser.chosen == cheaper and set(ran[probing + 1 :]) == {cheaper}
     assert chooser.counts == {d: ran.count(d) for d in ("openexr", "bands")}
     assert chooser.probe_medians() == {d: pytest.approx(costs[d]) for d in costs}
 

@@ -5,8 +5,11 @@ are resubmitted."""
 from __future__ import annotations
 
 import errno
+import json
 import os
 import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -81,6 +84,30 @@ def test_workers_get_the_malloc_settings_and_this_process_keeps_its_own(monkeypa
     assert list(seen.values()) == [WORKER_MALLOC_ENV]
     # dask's nanny sets them here before spawning: they must not leak into what this process starts later
     assert not any(k in os.environ for k in WORKER_MALLOC_ENV)
+
+
+_FREED_BLOCK_RSS = """
+import json, numpy as np
+from lightstage.malloc import release_free_heap
+def rss_mb():
+    return int(open("/proc/self/statm").read().split()[1]) * 4096 / 2**20
+block = np.ones(300 * 2**20, np.uint8)  # a whole raw frame's size, touched
+del block
+kept = rss_mb()
+print(json.dumps([kept, release_free_heap(), rss_mb()]))
+"""
+
+
+@pytest.mark.skipif(not Path("/proc/self/statm").exists(), reason="needs Linux /proc for resident memory")
+def test_release_free_heap_gives_back_what_the_worker_settings_keep() -> None:
+    """Under the workers' thresholds a freed 300 MB block stays resident until `release_free_heap` (glibc)."""
+    env = {**os.environ, **WORKER_MALLOC_ENV}
+    out = subprocess.run([sys.executable, "-c", _FREED_BLOCK_RSS], env=env, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    kept, released, after = json.loads(out.stdout)
+    if not released:
+        pytest.skip("no glibc malloc_trim here")
+    assert kept - after > 250, (kept, after)
 
 
 def executors(dask_ex) -> list:
