@@ -57,6 +57,10 @@ class CaptureInfo:
         }
 
 
+# user-supplied masks: <capture>/masks/<group>/<camera>.png (optional, per view)
+USER_MASKS = "masks"
+
+
 @dataclass(frozen=True)
 class Capture:
     """A raw capture on disk: where it is, its stage and its capture.yaml."""
@@ -69,6 +73,11 @@ class Capture:
         return self.root / self.info.path_template.format(
             group=frame.group, camera=frame.camera, light=frame.light
         )
+
+    def user_mask(self, view: ViewId) -> Path:
+        """Where the lab's own foreground mask of a view lies, if it has one: masks/<group>/<camera>.png at the
+        raw resolution (docs/capture-format.md); preprocess uses it as it is."""
+        return self.root / USER_MASKS / view.group / f"{view.camera}.png"
 
     def frames(self) -> Iterator[FrameId]:
         """Every expected frame, ordered group -> camera -> light."""

@@ -23,7 +23,7 @@ from lightstage.preprocess.config import PreprocessConfig
 from lightstage.preprocess.jobs import VIEW_RECORD, ViewRecord, camera_marker
 from lightstage.workdir import WorkDir
 
-CAMERA_FORMAT = 1  # bumped when the step changes meaning
+CAMERA_FORMAT = 2  # bumped when the step changes meaning (2: structure_parts decides what leaves)
 
 
 @dataclass(frozen=True)
@@ -95,6 +95,7 @@ def finalise_camera(job: CameraJob) -> dict[str, ViewRecord]:
             own=np.stack([masks[g] for g in same]),
         )
         final.update(zip(same, stack, strict=True))
+        final.update({g: masks[g] for g in same if records[g].user_mask})  # the capture's own: as it is
         removed = info.pop("removed", [0] * len(same))
         per_view = dict(zip(same, removed, strict=True))
     else:
@@ -109,6 +110,8 @@ def finalise_camera(job: CameraJob) -> dict[str, ViewRecord]:
             cons["skipped"] = "other frames than the camera's other groups"
         if n < 0:
             cons["skipped"] = f"{-n} fixed pixels are more than {cfg.consistency_max_removed:.0%} of the mask"
+        if rec.user_mask:
+            cons = {"skipped": "the capture's own mask, used as it is", "removed": 0}
         if gt and Path(gt).is_file():
             truth = read_gt_mask(gt, (w, h))
             cons["iou_view"] = round(iou(masks[g], truth), 5)

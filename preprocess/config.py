@@ -57,7 +57,9 @@ class PreprocessConfig:
     lit_ratio: float = 4.0
     lit_floor: float = 2.0**-13
     min_lit_fraction: float = 0.12
-    max_saturated_fraction: float = 0.5  # foreground pixels are mostly unsaturated
+    # foreground pixels are saturated in at most this fraction of frames (1: no bound; an overexposed object
+    # clips in most frames, a bulb in view in its own light's frame only)
+    max_saturated_fraction: float = 1.0
     open_radius: int = 1  # morphological opening radius (pixels)
     close_radius: int = 2  # morphological closing radius (pixels)
     min_component_fraction: float = 0.05  # keep components with at least this fraction of the largest one ...
@@ -76,6 +78,9 @@ class PreprocessConfig:
     flag_min_fraction: float = 0.002  # foreground fraction below this ...
     flag_max_fraction: float = 0.6  # ... or above this
     flag_group_ratio: float = 2.5  # foreground fraction this many times off the median of its group's views
+    # a flagged view is an error of the stage unless the capture supplies its mask (masks/<g>/<c>.png) or it is
+    # listed here ("group/camera", e.g. "000/cam03"): its mask is then accepted as it is
+    accept_masks: tuple[str, ...] = ()
     # ---- flare / outlier frames
     flare_dilate: int = 8  # mask dilation (pixels) before measuring energy outside it
     flare_thumb: int = 8  # per-frame thumbnails for flare scoring are this many times smaller
@@ -169,6 +174,12 @@ class PreprocessConfig:
         ):
             if not 0 <= getattr(self, key) <= 1:
                 raise bad(key, "expected a fraction in [0, 1]")
+        for name in self.accept_masks:
+            g, _, c = str(name).partition("/")
+            if not g or not c or "/" in c:
+                raise ConfigError(
+                    f"expected views as group/camera (e.g. 000/cam03), got {name!r}", "accept_masks"
+                )
         if not 0 < self.exposure_percentile <= 100:
             raise bad("exposure_percentile", "expected a percentile in (0, 100]")
 
@@ -205,6 +216,7 @@ _NOT_IN_VIEW_KEY = (
     "max_bad_fraction",
     "consistency",
     "consistency_max_removed",
+    "accept_masks",
 )
 
 # Bumped when the statistics or segmentation change meaning, so stale view outputs are recomputed.
@@ -212,7 +224,8 @@ STATS_FORMAT = 3  # 2: frame thumbnails cover whole blocks only; 3: brightness l
 
 # Bumped when a view's segmentation changes its result: 2: wide background blurs on a downsampled copy; 3: colour
 # grows the mask until it adds nothing, the inclusive mask (stats.npz mask_inclusive) for the camera step.
-SEGMENT_FORMAT = 3
+# 4: saturated frames count as brighter than every level; no bound on a foreground pixel's saturated frames.
+SEGMENT_FORMAT = 4
 
 
 def _hash(obj: Any) -> str:

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from lightstage.preprocess.config import PreprocessConfig
+from lightstage.tonemap import luminance
 
 MIN_GROUPS = 3  # a pixel is judged against a majority of the other groups: at least two of them
 
@@ -132,28 +133,69 @@ def consistent_masks(
     info["matches_needed"] = [int(need), int(weak)]
     out = masks.copy()
     removed = []
+    loglum = np.log2(np.maximum(np.stack([luminance(m) for m in means]), 1e-12))
     for i in range(g):
         strong = _fixed(counts[i] >= need, pixels, masks[i], config.open_radius)
         grow = _fixed(counts[i] >= weak, pixels, masks[i], config.open_radius) | strong
         _, labels = cv2.connectedComponents(grow.astype(np.uint8), connectivity=8)
         seeded = np.unique(labels[strong])
         fixed = np.isin(labels, seeded[seeded > 0])
-        n = int(np.count_nonzero(fixed))
         total = int(np.count_nonzero(masks[i]))
-        if n == 0:
+        if not fixed.any():
             removed.append(0)
             continue
-        if n > max_removed * total:
-            removed.append(-n)  # not removed: the object itself looks fixed to the camera
+        border, structure = structure_parts(fixed, own[i], loglum[i], background)
+        n = int(np.count_nonzero(structure & ~border))
+        if n > max_removed * total:  # the object itself looks fixed to the camera: only what leaves the frame
+            structure = border
+            removed_part = -n
+        else:
+            removed_part = None
+        if not structure.any():
             out[i] = own[i]
+            removed.append(removed_part if removed_part is not None else 0)
             continue
-        m = keep_components(masks[i] & ~fixed, config)
+        m = keep_components(masks[i] & ~structure, config)
         if config.fill_holes:
             m = fill_holes(m)
         out[i] = m
-        removed.append(int(np.count_nonzero(masks[i] & ~m)))
+        removed.append(removed_part if removed_part is not None else int(np.count_nonzero(masks[i] & ~m)))
     info["removed"] = removed
     return out, info
+
+
+def structure_parts(
+    fixed: np.ndarray, own: np.ndarray, loglum: np.ndarray, background: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(border, structure) of a view's fixed pixels (both (h, w) bool): each connected part of `fixed` is stage
+    structure when it reaches the frame border (an object is framed inside the image: a lit floor or a strut
+    leaving the frame is not), when it is mostly outside the view's own mask (what the inclusive mask's mean
+    layer let in), or when its typical brightness (median log2 luminance of the mean image `loglum`) is nearer
+    the background's than the object's (struts and cloth behind the object, 2-3x the cloth, against an object
+    several stops brighter). What is left is the object itself looking fixed: a rotationally symmetric, evenly
+    coloured object (or part) on the turntable axis, or an overexposed object clipped in every group."""
+    import cv2
+
+    n, labels = cv2.connectedComponents(fixed.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        empty = np.zeros(fixed.shape, bool)
+        return empty, empty
+    edge = np.zeros(fixed.shape, bool)
+    edge[[0, -1], :] = edge[:, [0, -1]] = True
+    idx = np.arange(1, n)
+    touches = np.isin(idx, np.unique(labels[edge & fixed]))
+    from scipy import ndimage
+
+    inside = np.asarray(ndimage.mean(own.astype(np.float32), labels, idx)) >= 0.5
+    obj_px = own & ~fixed
+    bg = float(np.median(loglum[background])) if background.any() else -np.inf
+    obj = float(np.median(loglum[obj_px if obj_px.any() else own])) if own.any() else np.inf
+    level = np.asarray(ndimage.median(loglum, labels, idx))
+    dim = level < bg + 0.5 * (obj - bg)
+    kinds = np.zeros(n, np.int8)  # 0: object, 1: structure, 2: structure at the border
+    kinds[1:][~inside | dim] = 1
+    kinds[1:][touches] = 2
+    return kinds[labels] == 2, kinds[labels] >= 1
 
 
 def _fixed(agree: np.ndarray, pixels: np.ndarray, mask: np.ndarray, radius: int) -> np.ndarray:

@@ -75,6 +75,7 @@ class ViewJob:
     raw_paths: tuple[str, ...] = ()
     raw_size: tuple[int, int] = (0, 0)  # (width, height)
     exposure_scale: float = 1.0
+    user_mask: str | None = None  # the capture's own mask of this view (masks/<g>/<c>.png), used as it is
 
 
 @dataclass
@@ -101,6 +102,9 @@ class ViewRecord:
     segmentation: dict[str, Any] = field(default_factory=dict)  # measured levels (segment.segment_view)
     # the camera's cross-group step (camera_task.py): pixels removed, noise fitted, IoU of the view's own mask
     consistency: dict[str, Any] = field(default_factory=dict)
+    # the capture's own mask, when it has one: {"path", "signature" ([size, mtime]), "iou_own": IoU of the mask
+    # preprocess computed against it}; the view's mask is then that mask
+    user_mask: dict[str, Any] = field(default_factory=dict)
 
     @property
     def view(self) -> ViewId:

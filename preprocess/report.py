@@ -44,6 +44,41 @@ def add_group_flags(work: WorkDir, records: dict[ViewId, ViewRecord], config: Pr
                 write_json_atomic(work.view_dir(rec.view) / VIEW_RECORD, asdict(rec))
 
 
+def implausible_views(
+    records: dict[ViewId, ViewRecord], config: PreprocessConfig
+) -> list[tuple[ViewId, list[str]]]:
+    """The views whose final mask fails the plausibility checks (its `flags`: empty, flooding the frame,
+    touching most of the border, far off its group's other views) and that neither have the capture's own mask
+    nor are listed in `accept_masks`: (view, reasons), in view order."""
+    accepted = set(config.accept_masks)
+    return [
+        (v, rec.flags)
+        for v, rec in sorted(records.items(), key=lambda kv: (kv[0].group, kv[0].camera))
+        if rec.flags and not rec.user_mask and str(v) not in accepted
+    ]
+
+
+def add_implausible(
+    report: dict[str, Any], capture: Capture, config: PreprocessConfig, records: dict[ViewId, ViewRecord]
+) -> None:
+    """Make implausible masks an error of the stage: the report lists them (`implausible_masks`), its status is
+    incomplete, and `failure` names the first view, its reasons and the two ways to fix it."""
+    bad = implausible_views(records, config)
+    report["implausible_masks"] = [{"view": str(v), "reasons": r} for v, r in bad]
+    if not bad:
+        return
+    v, reasons = bad[0]
+    more = f" (and {len(bad) - 1} more views)" if len(bad) > 1 else ""
+    why = (
+        f"view {v}: implausible mask ({'; '.join(reasons)}){more}; supply its mask as "
+        f'{capture.user_mask(v)}, or accept it in the preprocess config: accept_masks: ["{v}"]'
+    )
+    report["status"] = "incomplete"
+    report["failure"] = "; ".join(x for x in (report.get("failure"), why) if x)
+    missing = report["missing"]["views"]
+    missing.extend(str(w) for w, _ in bad if str(w) not in missing)
+
+
 # ---- previews and report ----------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class PreviewJob:

@@ -34,7 +34,7 @@ from lightstage.preprocess.jobs import (
     ViewRecord,
     split_lights,
 )
-from lightstage.preprocess.report import add_group_flags, build_report, write_previews
+from lightstage.preprocess.report import add_group_flags, add_implausible, build_report, write_previews
 from lightstage.preprocess.sfm_image import sfm_image_factor, spread_lights
 from lightstage.preprocess.view_task import process_view, read_gt_mask, view_finished
 from lightstage.records.ground_truth import GroundTruth
@@ -68,6 +68,7 @@ def run_preprocess(
     for view in capture.views():
         raw = tuple(str(capture.frame_path(FrameId(view.group, view.camera, lt))) for lt in lights)
         gt = GroundTruth.of(capture.root).mask(view)
+        user = capture.user_mask(view)
         chunks = split_lights(lights, config.chunk_lights)
         view_jobs.append(
             ViewJob(
@@ -83,6 +84,7 @@ def run_preprocess(
                 raw,
                 (stage.width, stage.height),
                 capture.info.exposure_scale,
+                str(user) if user.is_file() else None,
             )
         )
         chunk_jobs[view] = [
@@ -136,6 +138,7 @@ def run_preprocess(
     report = build_report(
         work, capture, config, view_jobs, records, chunk_results, errors, finished_before, exposure
     )
+    add_implausible(report, capture, config, records)
     t_previews = time.perf_counter() - t_prev
     from lightstage.preprocess.probe import run_probe
 

@@ -201,7 +201,7 @@ def _cleanup(coarse: np.ndarray, stats: ViewStats, config: PreprocessConfig, rim
     if config.fill_holes:
         mask = fill_holes(mask)
     if mask.any():
-        mask = refine_boundary(mask, stats.unsaturated_mean_luminance(), rim=rim)
+        mask = refine_boundary(mask, stats.mean_luminance(), rim=rim)
         mask = keep_components(mask, config)
         if config.fill_holes:
             mask = fill_holes(mask)
@@ -286,10 +286,14 @@ def _segment_adaptive(
     import cv2
 
     shape = stats.peak.shape
-    mostly_unsat = (stats.saturated <= config.max_saturated_fraction * stats.count) & (stats.unsaturated > 0)
+    # a pixel that clips in most frames is an overexposed part of the object (its saturated frames count as
+    # brighter than every level); a bulb clips in its own light's frame only. A user may still bound it.
+    mostly_unsat = stats.saturated <= config.max_saturated_fraction * stats.count
     ring = border_ring(shape, config.border_width)
     floor = 0.25  # stops: the ladder's resolution (one level per stop, interpolated)
     sigma = config.background_blur * float(np.hypot(*shape))
+    ring_sigma = 0.5 * min(shape)  # wide enough to reach the frame's centre from its border
+    ring_den = _weight_blur(ring, ring_sigma)
     # per quantile: lit level (stops re the cutoff, higher = brighter), background map, spread map, object level
     layers = []
     info: dict[str, Any] = {"method": "adaptive", "quantiles": {}}
@@ -306,15 +310,19 @@ def _segment_adaptive(
             )
         else:
             level = stats.brightness_quantile(min(q, 0.9))
-        b0, s0 = _robust(level[ring])
-        s0 = max(s0, floor)
-        strong = ~ring & (level > b0 + max(config.background_sigmas * s0, 2.0 * config.min_contrast_stops))
+        b0, _ = _robust(level[ring])
+        # the first background map: the ring's levels carried smoothly inwards (a lit floor along one border
+        # and a dark cloth along the others make the ring two-valued: one level for the frame would be either
+        # above the floor or far below the object), its spread measured on the ring around that map
+        back = _normalised_blur(level, ring, ring_sigma, ring_den)
+        s0 = max(_robust(level[ring] - back[ring])[1], floor)
+        strong = ~ring & (level > back + max(config.background_sigmas * s0, 2.0 * config.min_contrast_stops))
         if not strong.any():
             continue
         obj = float(np.median(level[strong]))
         # the mean layer takes part in the view's own mask when configured, else only in the inclusive one
         own = q != "mean" or config.mean_layer()
-        layers.append([level, np.full(shape, b0, np.float32), np.full(shape, s0, np.float32), obj, own])
+        layers.append([level, back, np.full(shape, s0, np.float32), obj, own])
         info["quantiles"][str(q)] = {
             "background_stops": round(-b0, 3),
             "background_spread_stops": round(s0, 3),
@@ -340,7 +348,9 @@ def _segment_adaptive(
             inclusive = mask
             if not np.array_equal(score_all, score):
                 inclusive = _colour_grow(
-                    _cleanup((score_all > 1.0) & mostly_unsat, stats, config, rim=2), stats, config
+                    _cleanup((score_all > 1.0) & mostly_unsat, stats, config, rim=2),
+                    stats,
+                    config,
                 )
                 inclusive |= mask
             break

@@ -75,10 +75,18 @@ class ViewStats:
     def lit_fraction(self) -> np.ndarray:
         return (self.lit / np.maximum(self.unsaturated, 1)).astype(np.float32)
 
+    def mean_luminance(self) -> np.ndarray:
+        """(h, w) float32 luminance of the mean over every frame, saturated ones included: a processed pixel is
+        the area mean of clipped raw values, so it stays linear in the object's coverage where the object clips
+        (a silhouette pixel of an overexposed object is flagged saturated in every frame)."""
+        return luminance(self.mean).astype(np.float32)
+
     def brightness_quantile(self, q: float) -> np.ndarray:
         """(h, w) float32: per pixel, the brightness (stops relative to the cutoff, <= 0; higher is brighter)
-        that a fraction `q` of its unsaturated frames exceed, read from the ladder and interpolated linearly
-        between its levels; -(K + 1) where fewer than `q` of the frames reach the lowest level.
+        that a fraction `q` of its frames exceed, read from the ladder and interpolated linearly between its
+        levels; -(K + 1) where fewer than `q` of the frames reach the lowest level. A saturated frame is at or
+        above the cutoff, so it exceeds every level: a pixel that clips in most frames (an overexposed object)
+        is at the top, not left without a level (the ladder counts unsaturated frames only).
 
         One ladder level at a time (the fractions rise with the level index, so a pixel's level is the first
         that reaches `q`): the same float32 arithmetic as on the whole (K, h, w) stack, without its 0.2 GB of
@@ -86,14 +94,15 @@ class ViewStats:
         k = len(self.ladder)
         if k == 0:
             raise LightstageError("statistics without the brightness ladder (rerun preprocess)")
-        n = np.maximum(self.unsaturated, 1).astype(np.float32)
+        n = np.float32(max(self.count, 1))
+        sat = self.saturated.astype(np.float32)
         qf = np.float32(q)
         stops = np.asarray(LADDER_STOPS, np.float32)
-        out = np.full(n.shape, -(stops[-1] + 1.0), np.float32)
-        open_ = np.ones(n.shape, bool)  # pixels whose level is not found yet
+        out = np.full(sat.shape, -(stops[-1] + 1.0), np.float32)
+        open_ = np.ones(sat.shape, bool)  # pixels whose level is not found yet
         prev = None
         for j in range(k):
-            frac = self.ladder[j].astype(np.float32) / n
+            frac = (self.ladder[j].astype(np.float32) + sat) / n
             hit = open_ & (frac >= qf)
             if j == 0:
                 out[hit] = -stops[0]

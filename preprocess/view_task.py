@@ -75,6 +75,15 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
             f"{view}: statistics are {stats.mean.shape[1]}x{stats.mean.shape[0]}, expected {w}x{h}"
         )
     mask, inclusive, seg_info = segment_masks(stats, cfg, job.cutoff)
+    user: dict = {}
+    if job.user_mask:  # the capture's own mask is used as it is; ours is reported against it
+        supplied = read_user_mask(job.user_mask, (w, h), view)
+        user = {
+            "path": job.user_mask,
+            "signature": file_signature(job.user_mask),
+            "iou_own": round(iou(mask, supplied), 5),
+        }
+        mask = inclusive = supplied
     zones = zone_map(mask, cfg.band_width)
     lum_thumbs = np.concatenate(thumbs) if thumbs else np.zeros((0, 1, 1), np.float32)
     sat_thumbs = np.concatenate(sthumbs) if sthumbs else np.zeros((0, 1, 1), np.float32)
@@ -128,6 +137,7 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
         chunks=[asdict(r) for r in chunk_records or []],
         flags=mask_flags(mask, cfg),
         segmentation=seg_info,
+        user_mask=user,
     )
     write_json_atomic(vdir / VIEW_RECORD, asdict(record))
     for p in paths:
@@ -193,6 +203,27 @@ def read_gt_mask(path: str | os.PathLike[str], size: tuple[int, int]) -> np.ndar
     return cv2.resize(m.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
 
 
+def read_user_mask(path: str | os.PathLike[str], size: tuple[int, int], view: ViewId) -> np.ndarray:
+    """A capture's own mask of a view (masks/<g>/<c>.png, at the raw resolution) at the processed `size`, like a
+    ground-truth mask; an unreadable or wrongly sized one is an error naming it."""
+    from lightstage.frames import read_image
+    from lightstage.workdir import DOWNSCALE
+
+    try:
+        shape = read_image(path).shape
+    except (OSError, ValueError) as e:
+        raise LightstageError(
+            f"{path}: cannot read the mask of view {view} ({e}); fix or remove it"
+        ) from None
+    w, h = size
+    if (shape[1], shape[0]) != (w * DOWNSCALE, h * DOWNSCALE):
+        raise LightstageError(
+            f"{path}: mask of view {view} is {shape[1]}x{shape[0]}, expected the raw frames' "
+            f"{w * DOWNSCALE}x{h * DOWNSCALE}; fix or remove it"
+        )
+    return read_gt_mask(path, size)
+
+
 def view_finished(work: WorkDir, job: ViewJob) -> ViewRecord | None:
     """The view's record when its outputs are complete and current, else None."""
     from lightstage.records.processed import processed_ok
@@ -226,4 +257,8 @@ def view_finished(work: WorkDir, job: ViewJob) -> ViewRecord | None:
             return None
     if set(record.lights) | {int(k) for k in record.problems} != set(job.lights):
         return None
+    user = record.user_mask.get("signature") if record.user_mask else None
+    now = file_signature(job.user_mask) if job.user_mask else None
+    if (user is None) != (now is None) or (now is not None and list(now) != list(user)):
+        return None  # a user mask appeared, went or changed
     return record

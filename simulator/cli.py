@@ -29,6 +29,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="stage: a real stage's lit cloth backdrop, sensor noise and black level, 12-bit darks, unequal "
         "LEDs, dark-albedo patches; clean: the old dark, clean render (default: the preset's; small: stage)",
     )
+    p.add_argument(
+        "--case",
+        action="append",
+        dest="cases",
+        metavar="NAME",
+        help="a real capture's failure case, repeatable: grey-object, candle, speculars, srgb8, dark-cloth, "
+        "soft-shadows, lit-floor, camera-side-lights (docs/simulator.md)",
+    )
     p.add_argument("--no-probe", action="store_true", help="skip the mirror-ball light-probe frames (probe/)")
     add_quiet(p)
     p.set_defaults(func=_simulate)
@@ -51,5 +59,6 @@ def _simulate(args: argparse.Namespace) -> int:
         progress=not args.quiet,
         probe=not args.no_probe,
         realism=args.realism,
+        cases=args.cases,
     )
     return 0

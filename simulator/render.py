@@ -110,6 +110,8 @@ class Backdrop:
     normal: np.ndarray  # (3,) world normal of the backdrop (towards the camera)
     factor: int
     level: float  # radiance of albedo 1 lit squarely by one light at the reference distance
+    occluders: tuple = ()  # the object's ellipsoids, when it casts soft shadows on the backdrop
+    penumbra_px: float = 0.0  # their blur (pixels of the albedo grid)
 
 
 def make_backdrop(
@@ -134,6 +136,10 @@ def make_backdrop(
         dist = (xx - w / 2) * np.cos(ang) + (yy - h / 2) * np.sin(ang) - off
         structure = np.maximum(structure, np.clip(1.0 - np.abs(dist) / width, 0, 1) ** 0.5)
     lum = cloth * (1.0 + (nz.structure_gain - 1.0) * structure)
+    if nz.lit_floor > 0 and cam.center[2] < 0:  # a low camera sees the lit floor in its lower rows
+        horizon = (1.0 - nz.lit_floor) * h
+        floor = np.clip((yy[:, :1] - horizon) / max(0.02 * h, 1.0) + 0.5, 0, 1)
+        lum = lum * (1.0 + (nz.floor_gain - 1.0) * floor)
     tint = np.array([0.85, 0.9, 1.15], np.float32) * (1.0 + 0.05 * rng.standard_normal(3)).astype(np.float32)
     albedo = lum[..., None] * tint
     # plane through the far side: the camera's axis meets it 1.35 m behind the centre
@@ -148,7 +154,37 @@ def make_backdrop(
     t = depth / np.maximum(d @ fwd, 1e-3)
     points = o + t[:, None] * d
     level = cutoff * 2.0 ** (-nz.backdrop_stops)
-    return Backdrop(albedo.astype(np.float32), points, -fwd, factor, level)
+    penumbra = 0.0
+    if nz.shadow_penumbra > 0:
+        penumbra = float(cam.K[0, 0]) / factor * nz.shadow_penumbra / depth
+    occluders = scene.body if penumbra > 0 else ()
+    return Backdrop(albedo.astype(np.float32), points, -fwd, factor, level, occluders, penumbra)
+
+
+# what a cast shadow on the backdrop leaves of the light (the rest of the stage fills it in a little)
+SHADOW_FLOOR = 0.15
+
+
+def backdrop_shadow(bd: Backdrop, p: np.ndarray) -> np.ndarray:
+    """(h * w,) float32 light reaching each backdrop point from the light at `p` past the object's ellipsoids:
+    1 unshadowed, SHADOW_FLOOR in the umbra, blurred by the penumbra (a light is not a point)."""
+    import cv2
+
+    from lightstage.simulator.shading import ellipsoid_interval
+
+    to_light = p[None, :] - bd.points
+    dist = np.linalg.norm(to_light, axis=-1)
+    d = to_light / dist[:, None]
+    o = (bd.points[:, 0], bd.points[:, 1], bd.points[:, 2])
+    dd = (d[:, 0], d[:, 1], d[:, 2])
+    hit = np.zeros(len(dist), bool)
+    for e in bd.occluders:
+        t0, t1, h = ellipsoid_interval(e, o, dd)
+        hit |= h & (t1 > 0) & (t0 < dist)
+    h, w = bd.albedo.shape[:2]
+    shadow = np.where(hit, SHADOW_FLOOR, 1.0).astype(np.float32).reshape(h, w)
+    shadow = cv2.GaussianBlur(shadow, (0, 0), max(bd.penumbra_px, 0.5))
+    return shadow.ravel()
 
 
 def backdrop_frame(
@@ -169,6 +205,8 @@ def backdrop_frame(
     incidence = np.clip(-(dirn @ bd.normal), 0, None)
     ref = 2.4  # m: a light on the camera's side to the backdrop
     e = (emit * incidence * (ref / np.maximum(dist, 0.3)) ** 2).astype(np.float32)
+    if bd.occluders:
+        e *= backdrop_shadow(bd, p)
     h, w = bd.albedo.shape[:2]
     small = bd.albedo * (bd.level * e.reshape(h, w))[..., None] * gain.astype(np.float32)
     return cv2.resize(small, (shape[1], shape[0]), dst=out, interpolation=cv2.INTER_LINEAR)

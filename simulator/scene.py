@@ -68,6 +68,8 @@ class Material:
     # in patches of 1-4 cm, has its albedo multiplied by `dark_albedo` (in the clean ground truth too)
     dark_fraction: float = 0.0
     dark_albedo: float = 0.1
+    # False: every surface point has exactly `base_rgb` (an evenly coloured object; no veins, flecks, mottling)
+    texture: bool = True
 
 
 @dataclass(frozen=True)
@@ -94,6 +96,14 @@ class Nuisances:
     black_level: float = 0.0  # sensor offset (stage units) added before and subtracted after quantisation
     quantise_bits: int = 0  # 8 or 12: quantise value/cutoff to this many bits (0: the adc_step converter)
     quantise_gamma: float = 1.0  # transfer curve of the quantiser (1: linear; 2.2: an 8-bit sRGB-like source)
+    # a lit floor (or table top) in the lower part of a low camera's frame (camera below the stage centre):
+    # this fraction of the frame height, `floor_gain` times the cloth's brightness; fixed to the camera like the
+    # backdrop, so it looks the same in every group (0: none)
+    lit_floor: float = 0.0
+    floor_gain: float = 4.0
+    # soft shadows of the object on the backdrop: the object's silhouette seen from each light, projected onto
+    # the cloth and blurred by this penumbra width (metres on the cloth; 0: no shadows)
+    shadow_penumbra: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -230,7 +230,8 @@ def cast_view(
     albedo = np.zeros((len(index), 3), np.float32)
     obj = kind == KIND_OBJECT
     if obj.any():
-        surf = object_albedo(tex, pos[obj], np.asarray(mat.base_rgb, np.float32))
+        base = np.asarray(mat.base_rgb, np.float32)
+        surf = object_albedo(tex, pos[obj], base) if mat.texture else np.tile(base, (int(obj.sum()), 1))
         core_pts = (
             pos[obj] - view[obj].astype(float) * np.where(np.isfinite(depth[obj]), depth[obj], 0)[:, None]
         )
@@ -245,7 +246,10 @@ def cast_view(
             albedo[obj] *= 1.0 - (1.0 - np.float32(mat.dark_albedo)) * dark
     st = kind == KIND_STAND
     if st.any():
-        albedo[st] = stand_albedo(tex, pos[st], np.asarray(mat.stand_rgb, np.float32))
+        stand_base = np.asarray(mat.stand_rgb, np.float32)
+        albedo[st] = (
+            stand_albedo(tex, pos[st], stand_base) if mat.texture else np.tile(stand_base, (int(st.sum()), 1))
+        )
     return ViewHits(width, height, index, kind, pos, normal.astype(np.float32), view, albedo)
 
 

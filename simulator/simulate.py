@@ -34,6 +34,7 @@ from lightstage.executor import Executor, local_executor
 from lightstage.ids import ViewId
 from lightstage.records.calibration import Calibration, ViewCalibration
 from lightstage.records.ground_truth import CLEAN_TEMPLATE, FOLDER, GroundTruth
+from lightstage.simulator.cases import apply_scene_cases, apply_stage_cases, check_cases
 from lightstage.simulator.geometry import TrueGeometry, true_geometry
 from lightstage.simulator.probe import (
     ProbeJob,
@@ -156,17 +157,20 @@ def simulate_capture(
     progress: bool = True,
     probe: bool = True,
     realism: str | None = None,
+    cases: Any = None,
 ) -> Path:
     """Simulate a raw capture with ground truth into `out` (created; must be empty or absent); returns `out`.
 
     `probe`: also write the mirror-ball light-probe frames (probe/, see capture.probe) and
     ground_truth/probe.json (its views queued after the capture views, in the same pool). `realism`: "stage"
-    or "clean" (default: the preset's; see scene.default_scene)."""
+    or "clean" (default: the preset's; see scene.default_scene). `cases`: names of real captures' failure cases
+    (simulator/cases.py: grey-object, candle, camera-side-lights, srgb8, ...), combined."""
     if preset not in SIM_PRESETS:
         raise LightstageError(f"unknown simulator preset {preset!r} (known: {', '.join(SIM_PRESETS)})")
     if not isinstance(seed, int) or seed < 0:
         raise LightstageError(f"seed must be a non-negative integer, got {seed!r}")
     p = SIM_PRESETS[preset]
+    cases = check_cases(cases)
     out = Path(out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise LightstageError(f"{out}: output exists and is not an empty directory")
@@ -184,12 +188,13 @@ def simulate_capture(
         num_groups=p.num_groups,
         camera_distance=p.camera_distance,
     )
+    full = apply_stage_cases(full, cases)
     gsel = _parse_indices(groups, len(full.groups), "groups", full.group_names)
     csel = _parse_indices(cameras, len(full.cameras), "cameras", full.camera_ids)
     lsel = _parse_indices(lights, len(full.lights), "lights")
     truth_full = true_geometry(full, seed)
     realism = realism or p.realism
-    scene = default_scene(texture_seed=seed, realism=realism)
+    scene = apply_scene_cases(default_scene(texture_seed=seed, realism=realism), cases)
     if scene.led_spread or scene.led_colour_spread:  # measured LED intensities go into stage.yaml
         leds = led_intensities(len(full.lights), seed, scene.led_spread, scene.led_colour_spread)
         full = replace(full, lights=tuple(replace(lt, intensity=tuple(leds[lt.index])) for lt in full.lights))
@@ -204,6 +209,7 @@ def simulate_capture(
         "preset": preset,
         "seed": seed,
         "realism": realism,
+        "cases": list(cases),
         "ground_truth": FOLDER,
         "source_light_indices": lsel if len(lsel) != len(full.lights) else "all",
     }

@@ -69,12 +69,34 @@ def test_structure_fixed_to_the_camera_leaves_the_masks() -> None:
 
 
 def test_a_symmetric_object_that_looks_fixed_is_not_removed() -> None:
-    """A uniform disc centred on the axis is the same in every group: it must not be removed (the step gives up
-    for views where the fixed pixels are most of the mask)."""
+    """A uniform disc centred on the axis is the same in every group: it is as bright as an object and framed
+    inside the image, so it is the object, not structure, and keeps its whole mask."""
     means, masks, truth = _camera(symmetric=True)
-    out, info = consistent_masks(means, masks, PreprocessConfig())
-    assert all(np.array_equal(o, m) for o, m in zip(out, masks, strict=True))
-    assert all(n < 0 for n in info["removed"])  # recorded as refused
+    out, _ = consistent_masks(means, masks, PreprocessConfig())
+    assert all(not np.any(t & ~o) for o, t in zip(out, truth, strict=True))
+
+
+def test_a_symmetric_part_is_kept_and_fixed_structure_at_the_border_leaves() -> None:
+    """structure_parts: a bright fixed part inside the own mask (a symmetric base, smaller than the rest) is the
+    object; a fixed part reaching the frame border (a lit floor) and a dim one (a strut) are structure."""
+    from lightstage.preprocess.consistency import structure_parts
+
+    loglum = np.full((H, W), -10.0)
+    own = np.zeros((H, W), bool)
+    own[10:30, 20:44] = True  # the object: 4 stops above the backdrop
+    loglum[own] = -6.0
+    base = np.zeros((H, W), bool)
+    base[24:30, 28:36] = True  # its symmetric base, fixed, as bright as the object
+    floor = np.zeros((H, W), bool)
+    floor[40:, :] = True  # a lit floor, as bright as the object, leaving the frame
+    loglum[floor] = -6.0
+    strut = np.zeros((H, W), bool)
+    strut[10:14, 20:23] = True  # a dim strut joined the mask
+    loglum[strut] = -9.0
+    own |= floor
+    background = ~own
+    border, structure = structure_parts(base | floor | strut, own, loglum, background)
+    assert np.array_equal(border, floor) and np.array_equal(structure, floor | strut)
 
 
 def test_fewer_than_three_groups_or_switched_off_change_nothing() -> None:

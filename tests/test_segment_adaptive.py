@@ -131,10 +131,17 @@ def test_mask_flags_unit() -> None:
 
 
 def test_a_flooded_mask_is_flagged_everywhere(tmp_path: Path, monkeypatch, capsys) -> None:
+    from lightstage.errors import StageIncomplete
+
     cap = _simulate(tmp_path / "cap", monkeypatch, cameras="0-1")
     # a config that floods: every pixel brighter than 0 is lit, in any fraction of the frames
-    work = _preprocess(cap, tmp_path / "work", segmentation="lit_fraction", lit_ratio=0.0, lit_floor=0.0)
+    flood = {"segmentation": "lit_fraction", "lit_ratio": 0.0, "lit_floor": 0.0}
+    with pytest.raises(StageIncomplete, match=r"view 000/cam00: implausible mask .*accept_masks"):
+        _preprocess(cap, tmp_path / "work", **flood)  # an error of the stage, not a warning beside exit 0
+    work = WorkDir.at(tmp_path / "work")
     report = json.loads(work.report("preprocess").read_text())
+    assert report["status"] == "incomplete" and "000/cam01" in report["missing"]["views"]
+    assert [f["view"] for f in report["implausible_masks"]] == ["000/cam00", "000/cam01"]
     flagged = {f["view"]: f["reasons"] for f in report["flagged_masks"]}
     assert set(flagged) == {"000/cam00", "000/cam01"}
     assert any("border" in r for r in flagged["000/cam00"])
@@ -259,14 +266,17 @@ def test_lens_flare_takes_the_leds_colour_per_channel() -> None:
     np.testing.assert_allclose(tinted / gain, white, rtol=1e-5, atol=1e-9)
 
 
-def _brightness_quantile_whole_stack(ladder: np.ndarray, unsaturated: np.ndarray, q: float) -> np.ndarray:
+def _brightness_quantile_whole_stack(
+    ladder: np.ndarray, saturated: np.ndarray, count: int, q: float
+) -> np.ndarray:
     """The brightness quantile computed on the whole (K, h, w) ladder at once (the formula before the
-    per-level loop), as the reference for `ViewStats.brightness_quantile`."""
+    per-level loop), as the reference for `ViewStats.brightness_quantile`: over all `count` frames, a saturated
+    frame above every level."""
     from lightstage.preprocess.stats import LADDER_STOPS
 
     k = len(ladder)
-    n = np.maximum(unsaturated, 1).astype(np.float32)
-    frac = ladder.astype(np.float32) / n[None]
+    n = np.float32(max(count, 1))
+    frac = (ladder.astype(np.float32) + saturated.astype(np.float32)[None]) / n
     stops = np.asarray(LADDER_STOPS, np.float32)
     above = frac >= np.float32(q)
     first = np.where(above.any(axis=0), above.argmax(axis=0), k)
@@ -294,8 +304,11 @@ def test_brightness_quantile_per_level_equals_the_whole_stack(q: float) -> None:
     stats.ladder = ladder
     stats.count = frames
     stats.saturated = rng.integers(0, frames + 1, (h, w)).astype(np.uint16)
+    stats.ladder = np.minimum(ladder, frames - stats.saturated[None]).astype(
+        np.uint16
+    )  # unsaturated frames only
     got = stats.brightness_quantile(q)
-    want = _brightness_quantile_whole_stack(ladder, stats.unsaturated, q)
+    want = _brightness_quantile_whole_stack(stats.ladder, stats.saturated, frames, q)
     assert got.dtype == np.float32
     np.testing.assert_array_equal(got.view(np.uint32), want.view(np.uint32))
     assert (got == -1.0).any() and (got == -17.0).any()  # both ends of the ladder occur
