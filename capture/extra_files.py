@@ -52,9 +52,11 @@ def unexpected_files_warning(capture: Capture) -> list[str]:
 
 
 def _contract_paths(capture: Capture) -> list[Path]:
-    """The frames, stage.yaml, capture.yaml and the known top-level files."""
+    """The frames, stage.yaml, capture.yaml, the known top-level files and the views' own masks (where a view
+    may have one: masks/<group>/<camera>.png)."""
     root = capture.root
     paths = [capture.frame_path(f) for f in capture.frames()]
+    paths += [capture.user_mask(v) for v in capture.views()]
     return [*paths, root / STAGE_FILE, root / CAPTURE_FILE, *(root / n for n in KNOWN_FILES)]
 
 

@@ -15,6 +15,8 @@ import pytest
 import yaml
 
 import lightstage.simulator.simulate as sim
+from lightstage.capture.extra_files import unexpected_files
+from lightstage.capture.layout import open_capture
 from lightstage.capture.stage import load_stage
 from lightstage.errors import StageIncomplete
 from lightstage.frames import read_exr, read_image, write_exr, write_image
@@ -147,6 +149,12 @@ def test_implausible_mask_is_an_error_naming_the_view(tmp_path: Path) -> None:
     flood = {"segmentation": "lit_fraction", "lit_ratio": 0.0, "lit_floor": 0.0}
     with pytest.raises(StageIncomplete, match=r"view 000/cam00: implausible mask \(mask touches"):
         _preprocess(cap, tmp_path / "work", **flood)
+    with pytest.raises(
+        StageIncomplete, match=r"view 000/cam00: implausible mask \(foreground covers only 0\.00%"
+    ):
+        _preprocess(
+            cap, tmp_path / "empty", segmentation="lit_fraction", lit_floor=1.0
+        )  # nothing is lit: empty
     (tmp_path / "pp.yaml").write_text(json.dumps(flood))
     code = main(
         [
@@ -181,6 +189,8 @@ def test_a_supplied_mask_is_used_as_it_is(tmp_path: Path) -> None:
     supplied[: supplied.shape[0] // 2] = False  # only the lower half: clearly not what preprocess finds
     (cap / "masks" / "040").mkdir(parents=True)
     write_image(cap / "masks" / "040" / "cam00.png", supplied.astype(np.uint8) * 255)
+    (cap / "masks" / "040" / "cam0.png").write_bytes(b"")  # a misnamed one: validate's warning lists it
+    assert unexpected_files(open_capture(cap)) == ["masks/040/cam0.png"]
     work = _preprocess(cap, tmp_path / "work")
     view = ViewId("040", "cam00")
     mask = read_mask(work.mask(view))
