@@ -18,7 +18,7 @@ import lightstage.simulator.simulate as sim
 from lightstage.capture.extra_files import unexpected_files
 from lightstage.capture.layout import open_capture
 from lightstage.capture.stage import load_stage
-from lightstage.errors import StageIncomplete
+from lightstage.errors import LightstageError, StageIncomplete
 from lightstage.frames import read_exr, read_image, write_exr, write_image
 from lightstage.ids import ViewId
 from lightstage.preprocess.config import PreprocessConfig
@@ -243,3 +243,12 @@ def test_speculars_and_soft_shadows_are_not_foreground(tmp_path: Path) -> None:
     work = _preprocess(cap, tmp_path / "work")
     for view, rec in _records(work).items():
         assert rec["iou"] > 0.9 and not rec["flags"], (view, rec["iou"], rec["flags"])
+
+
+def test_accept_masks_is_checked_by_the_strict_loader() -> None:
+    assert PreprocessConfig.from_dict({"accept_masks": ["000/cam03"]}).accept_masks == ("000/cam03",)
+    with pytest.raises(LightstageError, match=r"pp\.yaml: accept_masks: expected views as group/camera"):
+        PreprocessConfig.from_dict({"accept_masks": ["000cam03"]}, "pp.yaml")
+    with pytest.raises(LightstageError, match="did you mean 'accept_masks'"):
+        PreprocessConfig.from_dict({"accept_mask": ["000/cam03"]}, "pp.yaml")
+    assert PreprocessConfig(accept_masks=("000/cam03",)).view_key() == PreprocessConfig().view_key()
