@@ -5,13 +5,16 @@ while the turntable rotates the object between groups. So a background pixel of 
 every group and its mean over the OLAT stack is the same up to sensor noise, while an object pixel changes as the
 object turns. After every view of a camera has its masks, a pixel of a view's inclusive mask whose mean agrees with
 the same pixel of at least half of the camera's other groups (within `background_sigmas` of the noise measured on
-the camera's own background, where no group sees the object) is fixed to the camera, not the object, and leaves the
-mask, with the connected pixels that agree with at least two (the turning object covers a background pixel next to
-it in some of the other groups).
+the camera's own background, where no group sees the object) is fixed to the camera, with the connected pixels that
+agree with at least two (the turning object covers a background pixel next to it in some of the other groups).
 
-Limits (docs/preprocess.md): a rotationally symmetric, evenly coloured object (or part of one) centred on the
-turntable axis also looks fixed; when the removal would take more than `consistency_max_removed` of a view's mask
-nothing is removed from it. Needs at least 3 groups with the same frames; otherwise the masks stay as they are.
+A rotationally symmetric, evenly coloured object (or part of one) centred on the turntable axis, or an object that
+clips the same way in every group, looks fixed too. So each connected part of the fixed pixels is judged from the
+data (`structure_parts`): structure, which leaves the mask, when it reaches the frame border, lies mostly outside
+the view's own mask, or is nearer the background's brightness than the object's; otherwise it is the object and
+stays. When the structure away from the border would take more than `consistency_max_removed` of a view's mask, only
+the parts at the border leave. Needs at least 3 groups with the same frames; otherwise the masks stay as they are
+(docs/preprocess.md).
 """
 
 from __future__ import annotations

@@ -7,8 +7,9 @@ The default ("adaptive") sets every threshold from the view's own statistics (do
    stack ignores the few frames with a flare or a shadow, and saturated frames (bulbs) are left out; each
    quantile is compared with the background's own distribution of that quantile, and a pixel that stands out
    in any of them is foreground (the shadow side of an object stands out in its brightest frames only).
-2. The background's level and spread are measured where the object is not: first in a ring along the frame
-   border, then (twice) everywhere outside the dilated mask, smoothed into a local background map (the
+2. The background's level and spread are measured where the object is not: first from a ring along the frame
+   border, carried smoothly inwards (a lit floor along one border and a dark cloth along the others make the ring
+   two-valued), then (twice) everywhere outside the dilated mask, smoothed into a local background map (the
    background is lit unevenly). The object's level is the median of what stands clearly above it.
 3. A pixel is foreground when its lit level exceeds the local background by `background_sigmas` local
    spreads and by `contrast_fraction` of the way (in stops) to the object level, and is mostly unsaturated.
@@ -17,12 +18,13 @@ The default ("adaptive") sets every threshold from the view's own statistics (do
 5. Sub-pixel boundary: a silhouette pixel mixes object and background linearly, so near the coarse boundary a
    pixel is foreground when its mean (unsaturated) luminance is at least halfway between the object level
    just inside the rim (a ring 1-2 pixels in, not the brighter interior: the rim is darkened by lights near the
-   view axis) and the local background level outside.
+   view axis) and the local background level outside (the mean over every frame: saturated frames included).
 6. Colour near the silhouette (`colour_refine`), repeated until it adds nothing.
 `segment_masks` also gives an inclusive mask that takes the mean luminance over the stack as one more lit level
 (dark parts lit well in a frame or two); the camera's cross-group step (consistency.py) starts from it.
 The old rule ("lit_fraction": lit above a per-frame dark level in a fixed fraction of the frames) is kept as
-an option. `mask_flags` says when a mask looks wrong (touching most of the border, implausible size).
+an option. `mask_flags` says when a mask looks wrong (touching most of the border, implausible size): the stage
+refuses such a view unless its mask is supplied or accepted (report.add_implausible).
 """
 
 from __future__ import annotations

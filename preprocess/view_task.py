@@ -194,11 +194,16 @@ def _sfm_image(work: WorkDir, job: ViewJob, usable: set[int]) -> tuple[np.ndarra
 def read_gt_mask(path: str | os.PathLike[str], size: tuple[int, int]) -> np.ndarray:
     """A full-resolution ground-truth mask PNG, area-downscaled to `size` (w, h): foreground where more than
     half of the source pixels are (strict majority)."""
-    import cv2
-
     from lightstage.frames import read_image
 
-    img = read_image(path)[..., 0]
+    return downscale_mask(read_image(path)[..., 0], size)
+
+
+def downscale_mask(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """A full-resolution mask image (one channel, 0-1 or 0-255) at `size` (w, h): foreground where more than half
+    of the source pixels are (strict majority)."""
+    import cv2
+
     m = img > 0.5 * (255.0 if img.max() > 1.0 else 1.0)
     return cv2.resize(m.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
 
@@ -210,18 +215,18 @@ def read_user_mask(path: str | os.PathLike[str], size: tuple[int, int], view: Vi
     from lightstage.workdir import DOWNSCALE
 
     try:
-        shape = read_image(path).shape
+        img = read_image(path)
     except (OSError, ValueError) as e:
         raise LightstageError(
             f"{path}: cannot read the mask of view {view} ({e}); fix or remove it"
         ) from None
     w, h = size
-    if (shape[1], shape[0]) != (w * DOWNSCALE, h * DOWNSCALE):
+    if (img.shape[1], img.shape[0]) != (w * DOWNSCALE, h * DOWNSCALE):
         raise LightstageError(
-            f"{path}: mask of view {view} is {shape[1]}x{shape[0]}, expected the raw frames' "
+            f"{path}: mask of view {view} is {img.shape[1]}x{img.shape[0]}, expected the raw frames' "
             f"{w * DOWNSCALE}x{h * DOWNSCALE}; fix or remove it"
         )
-    return read_gt_mask(path, size)
+    return downscale_mask(img[..., 0], size)
 
 
 def view_finished(work: WorkDir, job: ViewJob) -> ViewRecord | None:
