@@ -143,23 +143,41 @@ def _eval_table(ev: dict[str, Any]) -> list[str]:
     """Model, ceiling and baseline per scoring convention (eval.json with `conventions`), with the notes."""
     mean = ev.get("mean", {})
     lines = [
-        "| scoring | PSNR (dB) | SSIM | LPIPS | ceiling PSNR | ceiling SSIM | ceiling LPIPS | baseline PSNR |",
-        "|---|---|---|---|---|---|---|---|",
+        "| scoring | PSNR (dB) | SSIM | LPIPS VGG | LPIPS Alex | ceiling PSNR | ceiling SSIM | ceiling LPIPS VGG "
+        "| ceiling LPIPS Alex | baseline PSNR |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for suffix, what in SCORINGS:
-        lines.append(
-            f"| {what} | {_fmt(mean.get('psnr' + suffix), 2)} | {_fmt(mean.get('ssim' + suffix), 4)} | "
-            f"{_fmt(mean.get('lpips' + suffix), 4)} | {_fmt(mean.get('ceiling_psnr' + suffix), 2)} | "
-            f"{_fmt(mean.get('ceiling_ssim' + suffix), 4)} | {_fmt(mean.get('ceiling_lpips' + suffix), 4)} | "
-            f"{_fmt(mean.get('baseline_psnr' + suffix), 2)} |"
-        )
+        model = [("psnr", 2), ("ssim", 4), ("lpips", 4), ("lpips_alex", 4)]
+        cells = [_fmt(mean.get(k + suffix), d) for k, d in model]
+        cells += [_fmt(mean.get(f"ceiling_{k}{suffix}"), d) for k, d in model]
+        cells.append(_fmt(mean.get("baseline_psnr" + suffix), 2))
+        lines.append(f"| {what} | " + " | ".join(cells) + " |")
     lines += [
         "",
         f"Means over {ev.get('count', '?')} test images ({ev.get('masked_count', '?')} with a foreground mask; "
         "outside it the target is 0, as in training and the paper's code). The ceiling is what a perfect "
         f"prediction scores on the same images ({ev.get('ceiling_count', 0)} of them): {ev.get('ceiling', 'n/a')}. "
-        f"LPIPS: {ev.get('lpips_note', ev.get('lpips', 'n/a'))}. SSIM: {ev.get('ssim', 'n/a')}. The baseline "
+        f"LPIPS: {ev.get('lpips_note', 'n/a')}. SSIM: {ev.get('ssim', 'n/a')}. The baseline "
         "predicts the mean training colour everywhere. Definitions: docs/model.md (Evaluation).",
+    ]
+    return lines
+
+
+def _paper_protocol_table(ev: dict[str, Any]) -> list[str]:
+    """eval.json's `paper_protocol`: the paper's Table 1/2 rows (its code's convention), ceiling beside."""
+    pp = ev.get("paper_protocol")
+    if not isinstance(pp, dict) or not pp.get("rows"):
+        return ["(no paper-protocol table in reports/eval.json)"]
+    lines = ["| metric | this capture | ceiling |", "|---|---|---|"]
+    for row in pp["rows"]:
+        digits = 3 if "LPIPS" in row["metric"] else 1
+        lines.append(f"| {row['metric']} | {_fmt(row['ours'], digits)} | {_fmt(row['ceiling'], digits)} |")
+    lines += [
+        "",
+        f"Means over the {pp.get('images', '?')} images of the {pp.get('split', 'test')} split, scored as the "
+        f"paper's code does: {pp.get('convention', 'n/a')}. Rows and precision as the paper's Tables 1 and 2 "
+        "(SSIM x 100; LPIPS VGG is what its code reports). The ceiling is a perfect prediction's score.",
     ]
     return lines
 
@@ -375,6 +393,8 @@ def write_report(
 
     lines += ["", "## Metrics (test split)", ""]
     lines += _eval_table(ev) if "conventions" in ev else _metrics_table(ev)
+    lines += ["", "## Paper protocol (test split, the paper code's convention)", ""]
+    lines += _paper_protocol_table(ev)
 
     lines += ["", "## Environment-map relighting", ""]
     relit_pngs = sorted((work.root / "relight").glob("*.png"))
