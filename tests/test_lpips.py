@@ -61,6 +61,12 @@ def test_lpips_of_identical_images_is_zero_and_grows_with_distortion(net):
     large = fn(np.clip(x + 0.2 * rng.normal(size=x.shape), 0, 1), x)
     assert 0 < small < large
     assert fn(x[:31], x[:31]) is None  # below MIN_SIDE the last taps would be empty
+    # a cached target's features are the target's: a changed target (same array) is not served from the cache
+    y = x.copy()
+    before = fn(x, y)
+    y[:32] = 1.0 - y[:32]
+    direct = lp.lpips_net(net)(*(torch.from_numpy(a).float().permute(2, 0, 1)[None] for a in (x, y)))
+    assert before == pytest.approx(0.0, abs=1e-7) and fn(x, y) == pytest.approx(float(direct[0]), rel=1e-6)
 
 
 def _consume_rng_like_lpips_vgg_construction() -> None:
