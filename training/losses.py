@@ -1,5 +1,7 @@
 """Training losses: the RawNeRF weighted L2 on HDR pixels (one-sided on saturated targets) and the L2 mask loss
-on the densities of samples along background rays.
+on the densities of samples along background rays: every ray whose target pixel is outside the foreground mask,
+the near-silhouette band (ZONE_BAND, outside the mask by construction) and the padded border included, as the
+paper puts it (its L2 on the densities of background rays).
 
 The weighted L2 ((y_hat - y) / (sg(y_hat) + eps))^2 approximates an L2 on log(y + eps), so eps sets the darkest
 level that still counts: eps = 1e-3 assumes linear HDR where object pixels are ~0.05-1 (the preprocess scale,
@@ -14,7 +16,7 @@ import dataclasses
 import torch
 
 from lightstage.training.config import LossConfig
-from lightstage.workdir import ZONE_BACKGROUND
+from lightstage.workdir import ZONE_FOREGROUND
 
 
 def measured_epsilon(cfg: LossConfig, exposure: float) -> LossConfig:
@@ -50,7 +52,7 @@ def total_loss(
     saturated = batch.get("saturated") if cfg.saturated_one_sided else None
     if saturated is not None:
         saturated = saturated.bool()
-    background = batch["zone"] == ZONE_BACKGROUND
+    background = batch["zone"] != ZONE_FOREGROUND  # band and background zones: target pixel outside the mask
     parts: dict[str, torch.Tensor] = {"rgb_fine": weighted_l2(outputs["rgb"], target, cfg.epsilon, saturated)}
     total = cfg.rgb_fine * parts["rgb_fine"]
     sigma_terms = [outputs["sigma"]]
