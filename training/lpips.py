@@ -75,11 +75,12 @@ class _NumpyOnlyUnpickler(pickle.Unpickler):
     """Resolves only the globals a pickled numpy array needs; any other name (os.system, builtins.eval, ...)
     is refused before it can be called."""
 
+    _RECONSTRUCT = np.zeros(0).__reduce__()[0]  # numpy's array reconstructor (numpy.core / numpy._core)
     ALLOWED = {
         ("numpy", "ndarray"): np.ndarray,
         ("numpy", "dtype"): np.dtype,
-        ("numpy.core.multiarray", "_reconstruct"): np.ndarray.__reduce__(np.zeros(0))[0],
-        ("numpy._core.multiarray", "_reconstruct"): np.ndarray.__reduce__(np.zeros(0))[0],
+        ("numpy.core.multiarray", "_reconstruct"): _RECONSTRUCT,
+        ("numpy._core.multiarray", "_reconstruct"): _RECONSTRUCT,
     }
 
     def find_class(self, module: str, name: str) -> object:
@@ -109,12 +110,13 @@ def weights_path(net: str) -> Path:
 
 
 def _conv(kernel: np.ndarray, bias: np.ndarray | None, stride: int, padding: int) -> nn.Conv2d:
-    """An nn.Conv2d holding a flax (h, w, in, out) kernel as PyTorch's (out, in, h, w)."""
+    """An nn.Conv2d holding a flax (h, w, in, out) kernel as PyTorch's (out, in, h, w). Built on the meta
+    device, so no random initialisation draws from torch's generator (evaluation leaves the RNG as it was)."""
     h, w, cin, cout = kernel.shape
-    conv = nn.Conv2d(cin, cout, (h, w), stride=stride, padding=padding, bias=bias is not None)
-    conv.weight.data = torch.from_numpy(np.ascontiguousarray(kernel.transpose(3, 2, 0, 1)))
+    conv = nn.Conv2d(cin, cout, (h, w), stride=stride, padding=padding, bias=bias is not None, device="meta")
+    conv.weight = nn.Parameter(torch.from_numpy(np.ascontiguousarray(kernel.transpose(3, 2, 0, 1))))
     if bias is not None:
-        conv.bias.data = torch.from_numpy(np.ascontiguousarray(bias))
+        conv.bias = nn.Parameter(torch.from_numpy(np.ascontiguousarray(bias)))
     return conv
 
 
