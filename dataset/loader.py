@@ -18,10 +18,17 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
-from lightstage.dataset.shards import verify_shard
 from lightstage.errors import LightstageError
 from lightstage.npyio import load_npy
-from lightstage.records.shards import COMPOSITION, RAY_DTYPE, ZONE_NAMES, ZONES, load_manifest
+from lightstage.records.shards import (
+    COMPOSITION,
+    RAY_DTYPE,
+    ZONE_NAMES,
+    ZONES,
+    check_file,
+    check_size,
+    load_manifest,
+)
 
 VERIFY_MODES = ("open", "all", "never")
 
@@ -80,9 +87,12 @@ class RayShardDataset(IterableDataset):
         self.epoch = 0
         self.position = 0
         self._verified: set[int] = set()
+        if verify != "never":  # every shard's size before any is read: none is ever read as fewer rays
+            for rec in self.shards:
+                check_size(self.root, rec)
         if verify == "all":
             for i, rec in enumerate(self.shards):
-                verify_shard(self.root, rec)
+                check_file(self.root, rec)
                 self._verified.add(i)
 
     # ---- bookkeeping -----------------------------------------------------------------------------------
@@ -141,7 +151,7 @@ class RayShardDataset(IterableDataset):
         rec = self.shards[shard]
         path = self.root / rec["file"]
         if self.verify == "open" and shard not in self._verified:
-            verify_shard(self.root, rec)
+            check_file(self.root, rec)
             self._verified.add(shard)
         try:
             arr = load_npy(path, mmap_mode="r")

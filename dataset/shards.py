@@ -35,7 +35,10 @@ from lightstage.records.shards import (
     SHARD_FORMAT_VERSION,
     ZONE_NAMES,
     ZONES,
+    check_file,
+    file_sha256,
     load_manifest,
+    read_test_index,
     write_test_index,
 )
 from lightstage.workdir import ZONE_FOREGROUND, WorkDir
@@ -125,15 +128,6 @@ def _npy_size(rays: int) -> int:
     return buf.tell() + rays * RAY_DTYPE.itemsize
 
 
-def file_sha256(path: Path, block: int = 8 << 20) -> str:
-    """sha256 of a file, read in blocks (bounded memory)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(block):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 # ---- test images -----------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class TestTask:
@@ -194,7 +188,15 @@ def write_test_image(task: TestTask) -> dict[str, Any]:
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as f:
                 (np.savez_compressed if task.compress else np.savez)(f, **arrays)
-    return {"file": f"test/{name}", "group": task.group, "camera": task.camera, "light": task.light}
+    # size and sha256 so that whatever reads the image (trainer previews, eval) refuses a truncated or foreign one
+    return {
+        "file": f"test/{name}",
+        "group": task.group,
+        "camera": task.camera,
+        "light": task.light,
+        "bytes": path.stat().st_size,
+        "sha256": file_sha256(path),
+    }
 
 
 # ---- driver ------------------------------------------------------------------------------------------------
@@ -251,7 +253,7 @@ def _write_shards(work: WorkDir, config: ShardConfig, executor: Executor, progre
     ).hexdigest()[:16]
     if manifest_path.is_file() and not config.force:
         m = json.loads(manifest_path.read_text())
-        if m.get("inputs_hash") == inputs_hash and all((root / s["file"]).is_file() for s in m["shards"]):
+        if m.get("inputs_hash") == inputs_hash and all(_intact(root, s) for s in m["shards"]):
             return _summary(work, m, skipped=True, seconds=time.perf_counter() - t0)
     tmp_dir = root / "tmp"
     plan_path = tmp_dir / "plan.json"
@@ -370,6 +372,12 @@ def _write_shards(work: WorkDir, config: ShardConfig, executor: Executor, progre
     return _summary(work, manifest, skipped=False, seconds=time.perf_counter() - t0, timings=timings)
 
 
+def _intact(root: Path, record: dict[str, Any]) -> bool:
+    """Whether a shard listed in the manifest is there with its recorded size (a rerun rebuilds otherwise)."""
+    path = root / record["file"]
+    return path.is_file() and path.stat().st_size == record.get("bytes")
+
+
 def _summary(
     work: WorkDir, m: dict[str, Any], skipped: bool, seconds: float, timings: dict | None = None
 ) -> dict[str, Any]:
@@ -401,25 +409,16 @@ def _summary(
 
 # ---- reading ---------------------------------------------------------------------------------------------
 def verify_shard(shards_dir: Path, record: dict[str, Any]) -> None:
-    """Raise LightstageError naming the shard if its size or sha256 differs from the manifest."""
-    path = Path(shards_dir) / record["file"]
-    if not path.is_file():
-        raise LightstageError(f"{path}: shard missing (listed in {MANIFEST}); rerun `lightstage shard`")
-    if path.stat().st_size != record["bytes"]:
-        raise LightstageError(
-            f"{path}: shard is {path.stat().st_size} bytes, manifest says {record['bytes']} (truncated?)"
-        )
-    sha = file_sha256(path)
-    if sha != record["sha256"]:
-        raise LightstageError(
-            f"{path}: checksum mismatch (sha256 {sha[:12]}..., manifest {record['sha256'][:12]}...): the shard is "
-            "corrupt; rerun `lightstage shard WORK --force`"
-        )
+    """Raise LightstageError naming the shard and the rebuild command if its size or sha256 differs from the
+    manifest."""
+    check_file(shards_dir, record)
 
 
 def verify_shards(shards_dir: str | os.PathLike[str]) -> int:
-    """Verify every shard of a manifest; returns the number verified."""
+    """Verify every shard and test image of a manifest (size and sha256); returns the number of shards."""
     m = load_manifest(shards_dir)
     for r in m["shards"]:
         verify_shard(Path(shards_dir), r)
+    for r in read_test_index(shards_dir):
+        check_file(shards_dir, r)
     return len(m["shards"])

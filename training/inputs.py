@@ -9,7 +9,7 @@ from typing import Protocol
 import torch
 
 from lightstage.errors import LightstageError
-from lightstage.records.shards import TestImage, read_test_image, read_test_index
+from lightstage.records.shards import TestImage, check_file, read_test_image, read_test_index
 from lightstage.workdir import WorkDir
 
 
@@ -70,7 +70,7 @@ class ShardSource:
 def iter_test_images(work: WorkDir) -> Iterator[TestImage]:
     """The test split's images in index order."""
     for rec in read_test_index(work.shards_dir):
-        yield read_test_image(work.shards_dir / rec["file"])
+        yield read_test_image(check_file(work.shards_dir, rec))
 
 
 def count_test_images(work: WorkDir) -> int:

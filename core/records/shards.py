@@ -7,6 +7,7 @@ Batch dict (what the trainer consumes, `BATCH_KEYS`): origins, directions, light
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from dataclasses import dataclass
@@ -46,6 +47,49 @@ COMPOSITION = (4, 3, 1)  # eighths
 MANIFEST = "manifest.json"
 TEST_INDEX = "test/index.json"
 BATCH_KEYS = ("origins", "directions", "light_positions", "light_directions", "rgb", "saturated", "zone")
+
+
+def rebuild_command(shards_dir: str | os.PathLike[str]) -> str:
+    """The command that rebuilds the shards of WORK/shards (`lightstage shard WORK --force`)."""
+    return f"lightstage shard {Path(shards_dir).resolve().parent} --force"
+
+
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    """sha256 of a file, streamed (bounded memory)."""
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
+
+
+def check_size(shards_dir: str | os.PathLike[str], record: dict[str, Any]) -> Path:
+    """The path of a manifest record's file (shard or test image) after checking that it exists and has the
+    recorded size: a missing, truncated or grown file is a LightstageError naming it and the rebuild command,
+    so it is never read as fewer rays."""
+    path = Path(shards_dir) / record["file"]
+    if not path.is_file():
+        raise LightstageError(
+            f"{path}: missing (listed in {MANIFEST}); rebuild the shards: {rebuild_command(shards_dir)}"
+        )
+    size = path.stat().st_size
+    if "bytes" in record and size != record["bytes"]:
+        raise LightstageError(
+            f"{path}: is {size} bytes, manifest says {record['bytes']} (truncated or replaced); "
+            f"rebuild the shards: {rebuild_command(shards_dir)}"
+        )
+    return path
+
+
+def check_file(shards_dir: str | os.PathLike[str], record: dict[str, Any]) -> Path:
+    """check_size, then the sha256 against the record's (when it has one): a foreign or corrupt file of the right
+    size is a LightstageError naming it and the rebuild command."""
+    path = check_size(shards_dir, record)
+    if "sha256" in record:
+        sha = file_sha256(path)
+        if sha != record["sha256"]:
+            raise LightstageError(
+                f"{path}: checksum mismatch (sha256 {sha[:12]}..., manifest {record['sha256'][:12]}...): the "
+                f"file is corrupt or from another run; rebuild the shards: {rebuild_command(shards_dir)}"
+            )
+    return path
 
 
 def load_manifest(shards_dir: str | os.PathLike[str]) -> dict[str, Any]:
