@@ -205,6 +205,29 @@ def _map(fn: Any, items: list[Any], executor: Executor, progress: bool, desc: st
     return executor.map(fn, items, desc=desc, progress=progress)
 
 
+def camera_record(camera: Any) -> dict[str, Any]:
+    """One view's calibrated camera as the manifest stores it (float64 values, exact through JSON)."""
+    return {
+        "K": np.asarray(camera.K, np.float64).tolist(),
+        "R": np.asarray(camera.R, np.float64).tolist(),
+        "t": np.asarray(camera.t, np.float64).reshape(3).tolist(),
+        "dist": np.asarray(camera.dist, np.float64).reshape(-1).tolist(),
+        "width": int(camera.width),
+        "height": int(camera.height),
+    }
+
+
+def light_table(calib: Any, groups: list[str]) -> dict[str, dict[str, list]]:
+    """Per group the world positions and directions (omega) of every light, as the manifest stores them."""
+    return {
+        g: {
+            "positions": np.asarray(calib.light_positions[g], np.float64).tolist(),
+            "directions": np.asarray(calib.light_directions(g), np.float64).tolist(),
+        }
+        for g in groups
+    }
+
+
 def _plan_shards(totals: np.ndarray, rays_per_shard: int) -> int:
     """Number of shards: about `rays_per_shard` rays each, every sampled ray kept (shard s holds the rays
     k = s mod S of each zone, so shards differ by at most one ray per zone and keep the global composition)."""
@@ -271,6 +294,7 @@ def _write_shards(work: WorkDir, config: ShardConfig, executor: Executor, progre
 
     # phase A: one chunk per training view
     views: list[ViewId] = split.train.views()
+    cameras = [camera_record(cam(v)) for v in views]  # the rays' camera table (dataset/ray_table.py)
     view_tasks = []
     excluded = split.train.excluded
     for i, v in enumerate(views):
@@ -279,14 +303,11 @@ def _write_shards(work: WorkDir, config: ShardConfig, executor: Executor, progre
         )
         if not lights:
             continue
-        c = cam(v)
-        lp = calib.light_positions[v.group][list(lights)]
-        ld = calib.light_directions(v.group)[list(lights)]
+        c = cameras[i]
         view_tasks.append(
             ViewTask(
-                str(work.root), i, v.group, v.camera, lights,
-                c.K.tolist(), c.R.tolist(), c.t.tolist(), np.asarray(c.dist).tolist(), c.width, c.height,
-                lp.tolist(), ld.tolist(), cfg_dict, str(tmp_dir / f"view_{i:05d}.npy"),
+                str(work.root), i, v.group, v.camera, lights, c["width"], c["height"], cfg_dict,
+                str(tmp_dir / f"view_{i:05d}.npy"),
             )
         )  # fmt: skip
     t_a = time.perf_counter()
@@ -356,11 +377,14 @@ def _write_shards(work: WorkDir, config: ShardConfig, executor: Executor, progre
         "bytes_per_ray": nbytes / max(rays, 1),
         "normalization": bounds.to_dict(),
         "views": [str(v) for v in views],
+        "cameras": cameras,
+        "lights": light_table(calib, sorted({v.group for v in views})),
         "frames": int(sum(len(t.lights) for t in view_tasks)),
         "shards": records,
         "test": {"images": len(tests), "index": "test/index.json"},
         "config": {k: v for k, v in cfg_dict.items() if k != "force"},
-        "coordinates": "world (metres); apply normalization to get the unit cube",
+        "coordinates": "world (metres); apply normalization to get the unit cube; rays from `cameras` and "
+        "`lights` (lightstage.dataset.ray_table)",
     }
     write_json_atomic(manifest_path, manifest)
     shutil.rmtree(tmp_dir, ignore_errors=True)
