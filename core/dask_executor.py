@@ -184,3 +184,65 @@ def dask_executor(
         link = getattr(client, "dashboard_link", None) if (scheduler or dashboard) else None
         print(f"dask: {where}" + (f"; dashboard {link}" if link else ""), file=sys.stderr)
     return DaskExecutor(client, stack)
+
+
+JOBQUEUE_KINDS = ("slurm", "pbs")
+
+
+def jobqueue_cluster(kind: str, threads_per_worker: int = 1, **job: Any) -> Any:
+    """A dask-jobqueue cluster (SLURMCluster or PBSCluster) whose batch jobs each run `job["cores"] //
+    threads_per_worker` worker processes with the same per-process library threads and malloc settings as a local
+    worker (exported by the job script). `job`: dask-jobqueue's keywords (cores, memory, queue, account,
+    walltime, job_extra_directives, job_script_prologue, python, interface, local_directory, log_directory).
+    The scheduler runs in this process; no job is submitted until the cluster is scaled."""
+    try:
+        import dask_jobqueue
+    except ImportError:
+        raise LightstageError(
+            f"cluster.kind {kind}: dask-jobqueue is not installed (pip install dask-jobqueue)"
+        ) from None
+    if kind not in JOBQUEUE_KINDS:
+        raise LightstageError(f"cluster.kind: one of local, {', '.join(JOBQUEUE_KINDS)}; got {kind!r}")
+    env = {**{k: str(threads_per_worker) for k in SINGLE_THREAD_ENV}, **WORKER_MALLOC_ENV}
+    prologue = [f"export {k}={v}" for k, v in env.items()] + list(job.pop("job_script_prologue", ()))
+    cores = int(job["cores"])
+    if cores < threads_per_worker:
+        raise LightstageError(f"cluster.cores: {cores} is fewer than threads_per_worker {threads_per_worker}")
+    cls = {"slurm": dask_jobqueue.SLURMCluster, "pbs": dask_jobqueue.PBSCluster}[kind]
+    options = {"dashboard_address": ":0"}
+    if job.get("interface"):
+        options["interface"] = job["interface"]
+    return cls(
+        processes=cores // threads_per_worker,
+        job_script_prologue=prologue,
+        scheduler_options=options,
+        **{k: v for k, v in job.items() if v is not None},
+    )
+
+
+def jobqueue_executor(
+    kind: str, jobs: int, threads_per_worker: int = 1, verbose: bool = True, **job: Any
+) -> DaskExecutor:
+    """A DaskExecutor on a SLURM or PBS cluster: `jobs` batch jobs of workers (jobqueue_cluster), submitted now;
+    tasks queue on the scheduler until the jobs start. Closing the executor cancels the jobs."""
+    from distributed import Client
+
+    stack = contextlib.ExitStack()
+    cluster = jobqueue_cluster(kind, threads_per_worker, **job)
+    stack.callback(cluster.close)
+    try:
+        client = Client(cluster)
+        stack.callback(client.close)
+        client.register_plugin(library_threads_plugin(threads_per_worker))
+        cluster.scale(jobs=jobs)
+    except BaseException:
+        stack.close()
+        raise
+    if verbose:
+        link = getattr(client, "dashboard_link", None)
+        print(
+            f"dask: {kind} cluster, {jobs} jobs of {job['cores']} cores submitted"
+            + (f"; dashboard {link}" if link else ""),
+            file=sys.stderr,
+        )
+    return DaskExecutor(client, stack)
