@@ -18,6 +18,16 @@ from lightstage.executor import SINGLE_THREAD_ENV, Executor, task_name
 from lightstage.malloc import WORKER_MALLOC_ENV
 
 
+def _lost_scheduler(client: Any, detail: str) -> LightstageError:
+    """The error of a run whose scheduler went away (killed, its node lost): finished outputs are kept, so the
+    same command resumes once a scheduler (and workers) run again."""
+    where = getattr(getattr(client, "scheduler", None), "address", None) or "the dask scheduler"
+    return LightstageError(
+        f"lost the connection to dask scheduler {where} ({detail}); finished outputs are kept: "
+        "start the scheduler and workers again and rerun the same command to resume"
+    )
+
+
 class _DaskSession:
     def __init__(self, client: Any, fn: Callable[..., Any]) -> None:
         from distributed import as_completed
@@ -27,9 +37,24 @@ class _DaskSession:
         self.counter = itertools.count()
         self.queue = as_completed()
 
+    def _gone(self, exc: BaseException) -> bool:
+        """Whether `exc` means the scheduler connection is gone (not a task's own error)."""
+        from distributed.client import ClosedClientError
+        from distributed.comm.core import CommClosedError
+
+        return isinstance(exc, CommClosedError | ClosedClientError) or self.client.status in (
+            "closed",
+            "closing",
+        )
+
     def submit(self, fn: Callable[..., Any], *args: Any) -> Any:
         key = f"{self.prefix}-{next(self.counter)}"
-        fut = self.client.submit(fn, *args, key=key, pure=False)
+        try:
+            fut = self.client.submit(fn, *args, key=key, pure=False)
+        except Exception as e:
+            if self._gone(e):
+                raise _lost_scheduler(self.client, f"{type(e).__name__}: {e}") from None
+            raise
         self.queue.add(fut)
         return fut
 
@@ -39,7 +64,14 @@ class _DaskSession:
     def outcome(self, h: Any) -> tuple[bool, Any]:
         try:
             if h.status == "finished":
-                return True, h.result()
+                try:
+                    return True, h.result()
+                except Exception as e:
+                    if self._gone(e):
+                        raise _lost_scheduler(self.client, f"{type(e).__name__}: {e}") from None
+                    raise
+            if self._gone(RuntimeError()):
+                raise _lost_scheduler(self.client, f"task {h.key} {h.status} when the client closed")
             if h.status == "cancelled":
                 return False, EnvironmentFault(f"task {h.key} was cancelled by the scheduler")
             try:
@@ -47,10 +79,17 @@ class _DaskSession:
             except Exception as e:  # noqa: BLE001 - a lost future raises here
                 return False, e
         finally:
-            h.release()
+            try:
+                h.release()
+            except Exception:  # noqa: BLE001 - a closed client has nothing left to release
+                pass
 
     def cancel(self, h: Any) -> None:
-        h.cancel()
+        try:
+            h.cancel()
+        except Exception as e:  # noqa: BLE001 - cleanup after the scheduler went away: nothing to cancel there
+            if not self._gone(e):
+                raise
 
     def broken(self, exc: BaseException) -> bool:
         return False
