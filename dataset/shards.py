@@ -276,7 +276,8 @@ def _write_shards(work: WorkDir, config: ShardConfig, executor: Executor, progre
     ).hexdigest()[:16]
     if manifest_path.is_file() and not config.force:
         m = json.loads(manifest_path.read_text())
-        if m.get("inputs_hash") == inputs_hash and all(_intact(root, s) for s in m["shards"]):
+        current = m.get("format_version") == SHARD_FORMAT_VERSION  # older formats are rewritten
+        if current and m.get("inputs_hash") == inputs_hash and all(_intact(root, s) for s in m["shards"]):
             return _summary(work, m, skipped=True, seconds=time.perf_counter() - t0)
     tmp_dir = root / "tmp"
     plan_path = tmp_dir / "plan.json"

@@ -120,6 +120,12 @@ def test_old_format_is_refused_naming_the_rebuild(sharded, tmp_path):
     path.write_text(json.dumps(m | {"format_version": 1}))
     with pytest.raises(LightstageError, match=r"old format 1 .*rerun `lightstage shard .*work --force`"):
         RayShardDataset(copy / "shards", batch_size=64)
+    # a plain rerun of the shard stage (same inputs and config) rewrites them in the current format
+    from lightstage.workdir import WorkDir
+
+    cfg = ShardConfig(rays_per_image=64, rays_per_shard=256, workers=1)
+    assert not run_shard(WorkDir.at(copy), cfg, progress=False)["skipped"]
+    assert load_manifest(copy / "shards")["shards"] == load_manifest(sharded.shards_dir)["shards"]
 
 
 class StoredRays:
