@@ -61,6 +61,27 @@ def throughput(
     }
 
 
+def expand_speed(shards: Path, device: str, batch_size: int = 65536, batches: int = 50) -> dict:
+    """Rays per second of computing a batch's rays from its compact records on `device` (RayTable.expand:
+    what the trainer does on its GPU per step), the records already on the device."""
+    import torch
+
+    from lightstage.dataset.loader import RayShardDataset
+
+    ds = RayShardDataset(shards, batch_size=batch_size, verify="never", rays=False)
+    table = ds.table(device)
+    records = [b["records"].to(device) for _, b in zip(range(8), ds, strict=False)]
+    sync = torch.cuda.synchronize if table.device.type == "cuda" else (lambda: None)
+    table.expand(records[0])  # warm-up (kernels, allocator)
+    sync()
+    t0 = time.perf_counter()
+    for k in range(batches):
+        table.expand(records[k % len(records)])
+    sync()
+    dt = time.perf_counter() - t0
+    return {"device": device, "batch_size": batch_size, "rays_per_s": round(batches * batch_size / dt)}
+
+
 def peak_rss_child(shards: Path, batch_size: int) -> int:
     """Peak RSS (kB) of a fresh process that reads one full epoch."""
     code = (
@@ -107,6 +128,9 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=8.0)
     ap.add_argument("--shard-speed", action="store_true", help="also time run_shard per frame at 2048x1366")
     ap.add_argument("--out", type=Path, default=None, help="write results as JSON here")
+    ap.add_argument(
+        "--device", default=None, help="also time the rays' computation on this device (e.g. cuda)"
+    )
     args = ap.parse_args()
 
     from support.fixtures import write_random_shards
@@ -128,6 +152,9 @@ def main() -> None:
             r = throughput(shards, bs, workers, verify, args.seconds, rays)
             results["runs"].append(r)
             print(json.dumps(r), flush=True)
+        if args.device:
+            results["expand"] = expand_speed(shards, args.device)
+            print(json.dumps(results["expand"]), flush=True)
         small = write_random_shards(Path(tmp) / "small", 2, args.rays_per_shard, seed=1)
         for n, path in ((2, small), (args.shards, shards)):
             rss = peak_rss_child(path, 65536)
