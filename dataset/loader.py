@@ -4,7 +4,8 @@ memory maps (bounded memory: one shard mapped per process), composes every batch
 workers without duplication, and resumes at (epoch, position).
 
 Batch dict (what the trainer consumes): origins, directions, light_positions, light_directions (B, 3) float32,
-rgb (B, 3) float32 (HDR, linear), saturated (B,) bool, zone (B,) uint8 (ZONE_* labels of lightstage.workdir).
+rgb (B, 3) float32 (HDR, linear), saturated (B,) bool, zone (B,) uint8 (ZONE_* labels of lightstage.workdir),
+flare (B,) bool (flag bits of the ray: lightstage.records.shards).
 """
 
 from __future__ import annotations
@@ -21,7 +22,15 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 from lightstage.dataset.shards import verify_shard
 from lightstage.errors import LightstageError
 from lightstage.npyio import load_npy
-from lightstage.records.shards import COMPOSITION, RAY_DTYPE, ZONE_NAMES, ZONES, load_manifest
+from lightstage.records.shards import (
+    COMPOSITION,
+    FLAG_FLARE,
+    FLAG_SATURATED,
+    RAY_DTYPE,
+    ZONE_NAMES,
+    ZONES,
+    load_manifest,
+)
 
 VERIFY_MODES = ("open", "all", "never")
 
@@ -190,8 +199,9 @@ class RayShardDataset(IterableDataset):
             "light_positions": floats[2],
             "light_directions": floats[3],
             "rgb": floats[4],
-            "saturated": flags[0].view(torch.bool),
+            "saturated": (flags[0] & FLAG_SATURATED) != 0,
             "zone": flags[1],
+            "flare": (flags[0] & FLAG_FLARE) != 0,
         }
         if self.normalize:
             c = torch.tensor(self.normalization["centre"], dtype=torch.float32)

@@ -16,9 +16,10 @@ from lightstage.atomic import atomic_path, write_json_atomic
 from lightstage.dataset.shard_config import ShardConfig
 from lightstage.errors import LightstageError
 from lightstage.ids import FrameId, ViewId
-from lightstage.records.processed import read_mask
+from lightstage.records.processed import read_flare_mask, read_mask
 from lightstage.records.shards import (
     COMPOSITION,
+    FLAG_FLARE,
     RAY_DTYPE,
     ZONE_NAMES,
     ZONES,
@@ -178,6 +179,7 @@ def write_view_chunk(task: ViewTask) -> dict[str, Any]:
     for k, light in enumerate(task.lights):
         frame = FrameId(task.group, task.camera, light)
         img_rgb, img_sat = read_frame(work.frame(frame), (W, H))
+        flare = read_flare_mask(work.flare_mask(frame), (H, W))  # where the target is the pixel: no loss
         rng = np.random.default_rng([cfg.seed, task.index, light])
         for z in ZONES:
             if z == ZONE_BACKGROUND:
@@ -210,7 +212,7 @@ def write_view_chunk(task: ViewTask) -> dict[str, Any]:
             rgb = np.zeros((len(pix), 3), np.float16)
             rgb[inside] = np.where(keep[:, None], img_rgb[jj, ii], 0)
             sat = np.zeros(len(pix), np.uint8)
-            sat[inside] = img_sat[jj, ii] & keep
+            sat[inside] = (img_sat[jj, ii] & keep) | np.where(flare[jj, ii] & keep, FLAG_FLARE, 0)
             rec["rgb"], rec["saturated"], rec["zone"] = rgb, sat, z
             rec["view"], rec["light"], rec["pixel"] = task.index, light, pix
             blocks[z].append(rec)

@@ -6,6 +6,9 @@ Keys of every per-image row and of `mean` (means over images; None where no imag
 headline figures); the same with `_full` (every pixel of the raw target) and `_paper` (the paper code's
 convention, sRGB(log(1 + hdr)), masked); `baseline_*` for the constant colour and `ceiling_*` for a perfect
 prediction (noise-free render; simulated captures only). LPIPS is None unless its backbone weights are local.
+`psnr_unflagged`, `ssim_unflagged`: the headline figures without the frame's flare and bulb pixels, beside
+`flagged_fraction` and `backlit` per image (training/flagged.py); `backlit` in the report holds the means over the
+back-lit test images alone (the light behind the object as seen from the camera).
 
 Exposure rule: one exposure per capture, chosen from the training targets (the 99th percentile of foreground
 luminance maps to 1, `lightstage.tonemap.auto_exposure`), stored in the checkpoint and used for every image.
@@ -29,6 +32,7 @@ from lightstage.records.shards import TestImage
 from lightstage.tonemap import tonemap, tonemap_u8
 from lightstage.training.ceiling import CleanRenders
 from lightstage.training.config import EvalConfig
+from lightstage.training.flagged import flag_scores
 from lightstage.training.inference import render_image
 from lightstage.training.metrics import CONVENTIONS, ceiling_scores, scores
 from lightstage.training.model import RelightModel
@@ -80,16 +84,19 @@ def evaluate_images(
         ref = clean.get(img.frame, (img.camera.width, img.camera.height)) if clean is not None else None
         perfect = ceiling_scores(ref, img.target, img.mask, exposure, lpips_fn) if ref is not None else {}
         row.update({f"ceiling_{k}": perfect.get(k) for k in scores_keys()})
+        row.update(flag_scores(pred, img, exposure))
         row["masked"] = img.mask is not None
         row["seconds"] = time.perf_counter() - t0
         if out_dir is not None:
             write_image(Path(out_dir) / f"{img.name}.png", side_by_side(pred, img.masked_target, exposure))
         rows.append(row)
-    keys = [k for k in (rows[0] if rows else {}) if k not in ("name", "masked", "seconds")]
+    keys = [k for k in (rows[0] if rows else {}) if k not in ("name", "masked", "seconds", "backlit")]
+    backlit = [r for r in rows if r.get("backlit")]
     return {
         "images": rows,
         "mean": {k: _mean(rows, k) for k in keys},
         "count": len(rows),
+        "backlit": {"count": len(backlit), "mean": {k: _mean(backlit, k) for k in keys}},
         "masked_count": sum(r["masked"] for r in rows),
         "ceiling_count": sum(r["ceiling_psnr"] is not None for r in rows),
         "exposure": exposure,
