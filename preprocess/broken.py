@@ -5,8 +5,9 @@ the object turns. A frame's mean level (flare.frame_levels) is therefore compare
 the other groups: a frame more than `limit` stops from their median is broken, where the limit is `sigmas` x the
 capture's own robust spread of those differences (1.4826 x their median absolute value), and at least
 `min_stops`. A misfired light leaves the frame at the dark level, many stops down; a wrong exposure scales the whole
-frame. Needs at least 3 groups (with fewer, nothing is dropped). Everything else, flares and bulbs in view included,
-stays in the split (docs/preprocess.md).
+frame. Needs at least 3 groups (with fewer, nothing is dropped). Frames whose light is in view are not tested
+(whether the turning object hides the bulb changes their level from group to group); levels leave out blocks with
+a saturated pixel. Everything else, flares and bulbs in view included, stays in the split (docs/preprocess.md).
 """
 
 from __future__ import annotations

@@ -256,22 +256,29 @@ def flare_mask(region: FlareRegion, size: tuple[int, int], factor: int) -> np.nd
     return up
 
 
-def frame_levels(lum_thumbs: np.ndarray) -> np.ndarray:
-    """(k,) mean luminance of each frame's thumbnail: what the broken-frame test (preprocess/broken.py)
-    compares across groups."""
-    if lum_thumbs.shape[0] == 0:
+def frame_levels(lum_thumbs: np.ndarray, sat_thumbs: np.ndarray) -> np.ndarray:
+    """(k,) mean luminance of each frame's thumbnail over its blocks without a saturated pixel (clipped
+    highlights move as the object turns; all blocks when every one has one): what the broken-frame test
+    (preprocess/broken.py) compares across groups."""
+    k = lum_thumbs.shape[0]
+    if k == 0:
         return np.zeros(0)
-    return lum_thumbs.reshape(lum_thumbs.shape[0], -1).mean(axis=1).astype(np.float64)
+    lum = lum_thumbs.reshape(k, -1).astype(np.float64)
+    clear = sat_thumbs.reshape(k, -1) <= 0
+    n = clear.sum(axis=1)
+    return np.where(n > 0, (lum * clear).sum(axis=1) / np.maximum(n, 1), lum.mean(axis=1))
 
 
 # ---- a view's flares ------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class ViewFlares:
-    """A view's flare outcome: per frame (the view's lights, in order) its score and level; the frames the `drop`
-    policy rejects; the flare regions the `mask` policy writes (light -> FlareRegion)."""
+    """A view's flare outcome: per frame (the view's lights, in order) its score; the level of each frame whose
+    light is not in view (light -> level; the broken-frame test leaves the others out: whether the turning object
+    hides the bulb changes their level from group to group); the frames the `drop` policy rejects; the flare
+    regions the `mask` policy writes (light -> FlareRegion)."""
 
     scores: np.ndarray
-    levels: np.ndarray
+    levels: dict[int, float]
     rejected: list[int]
     regions: dict[int, FlareRegion]
 
@@ -299,7 +306,12 @@ def view_flares(
             *args, config.flare_thumb, centres, config.flare_veil, config.lit_floor * cutoff
         )
         regions = {lt: r for lt, r in zip(lights, found, strict=True) if r is not None}
-    return ViewFlares(scores, frame_levels(lum_thumbs), rejected, regions)
+    levels = {
+        lt: float(x)
+        for lt, x, c in zip(lights, frame_levels(lum_thumbs, sat_thumbs), centres, strict=True)
+        if c is None
+    }
+    return ViewFlares(scores, levels, rejected, regions)
 
 
 def write_flare_masks(

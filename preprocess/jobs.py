@@ -106,7 +106,8 @@ class ViewRecord:
     consistency: dict[str, Any] = field(default_factory=dict)
     # light -> fraction of the frame's pixels in its flare and bulb mask (WorkDir.flare_mask; flare_policy mask)
     flared: dict[str, float] = field(default_factory=dict)
-    # light -> mean level of the frame (flare.frame_levels), for the broken-frame test (broken.py)
+    # light -> mean level of the frame (flare.frame_levels), for the broken-frame test (broken.py); frames whose
+    # light is in view are left out
     frame_levels: dict[str, float] = field(default_factory=dict)
 
     @property

@@ -131,7 +131,7 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
         flags=mask_flags(mask, cfg),
         segmentation=seg_info,
         flared=flared,
-        frame_levels={str(lt): float(x) for lt, x in zip(lights, flares.levels, strict=True)},
+        frame_levels={str(lt): x for lt, x in flares.levels.items()},
     )
     write_json_atomic(vdir / VIEW_RECORD, asdict(record))
     for p in paths:
