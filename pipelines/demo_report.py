@@ -139,6 +139,27 @@ def _fmt(v: Any, digits: int) -> str:
     return f"{v:.{digits}f}" if isinstance(v, int | float) and not isinstance(v, bool) else "n/a"
 
 
+def _flare_rows(ev: dict[str, Any]) -> list[str]:
+    """Table rows beside the scorings: the masked figures without the frames' flare and bulb pixels, and over the
+    back-lit test images alone (training/flagged.py); none when eval.json predates them."""
+    mean, back = ev.get("mean", {}), ev.get("backlit")
+    rows = []
+    if "psnr_unflagged" in mean:
+        rows.append(
+            f"| masked, without flare and bulb pixels | {_fmt(mean.get('psnr_unflagged'), 2)} | "
+            f"{_fmt(mean.get('ssim_unflagged'), 4)} | n/a | n/a | n/a | n/a | n/a |"
+        )
+    if isinstance(back, dict) and back.get("count"):
+        b = back.get("mean", {})
+        rows.append(
+            f"| masked, back-lit test images only ({back['count']}) | {_fmt(b.get('psnr'), 2)} | "
+            f"{_fmt(b.get('ssim'), 4)} | {_fmt(b.get('lpips'), 4)} | {_fmt(b.get('ceiling_psnr'), 2)} | "
+            f"{_fmt(b.get('ceiling_ssim'), 4)} | {_fmt(b.get('ceiling_lpips'), 4)} | "
+            f"{_fmt(b.get('baseline_psnr'), 2)} |"
+        )
+    return rows
+
+
 def _eval_table(ev: dict[str, Any]) -> list[str]:
     """Model, ceiling and baseline per scoring convention (eval.json with `conventions`), with the notes."""
     mean = ev.get("mean", {})
@@ -153,6 +174,7 @@ def _eval_table(ev: dict[str, Any]) -> list[str]:
             f"{_fmt(mean.get('ceiling_ssim' + suffix), 4)} | {_fmt(mean.get('ceiling_lpips' + suffix), 4)} | "
             f"{_fmt(mean.get('baseline_psnr' + suffix), 2)} |"
         )
+    lines += _flare_rows(ev)
     lines += [
         "",
         f"Means over {ev.get('count', '?')} test images ({ev.get('masked_count', '?')} with a foreground mask; "

@@ -230,3 +230,25 @@ def test_flare_bit_in_shards_and_test_images(tmp_path) -> None:
     img = read_test_image(work.shards_dir / rec["file"])
     np.testing.assert_array_equal(img.flare, flare)
     assert json.loads(work.report("shard").read_text())["rays"] == len(rays)
+
+
+def test_frame_levels_leave_out_saturated_blocks() -> None:
+    from lightstage.preprocess.flare import frame_levels
+
+    lum = np.full((2, 4, 4), 0.1, np.float32)
+    sat = np.zeros_like(lum)
+    lum[0, 0, 0], sat[0, 0, 0] = 400.0, 1.0  # a clipped highlight or bulb: not the frame's level
+    sat[1] = 1.0  # every block saturated: the plain mean
+    np.testing.assert_allclose(frame_levels(lum, sat), [0.1, 0.1], rtol=1e-6)
+
+
+def test_demo_report_shows_unflagged_and_backlit_rows() -> None:
+    from lightstage.pipelines.demo_report import _eval_table
+
+    ev = {
+        "mean": {"psnr": 28.0, "psnr_unflagged": 29.5, "ssim_unflagged": 0.9},
+        "backlit": {"count": 3, "mean": {"psnr": 24.25, "ssim": 0.8}},
+    }
+    text = "\n".join(_eval_table(ev))
+    assert "without flare and bulb pixels | 29.50 | 0.9000" in text
+    assert "back-lit test images only (3) | 24.25 | 0.8000" in text
