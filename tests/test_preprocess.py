@@ -411,6 +411,46 @@ def test_a_frame_with_a_bulb_in_view_stays_in_the_split_with_its_flare_flagged(
     cameras = {f.split("/")[1] for f in train}
     on_train_cameras = {f for f in flagged if f.split("/")[1] in cameras}
     assert on_train_cameras and on_train_cameras <= train  # ... and training frames, their flare flagged
+    _flagged_rays_carry_no_loss(work, tiny_capture, flagged)
+
+
+def _flagged_rays_carry_no_loss(work: WorkDir, capture: Path, flagged: dict[str, float]) -> None:
+    """Shard the split above (true calibration): rays of flagged frames carry FLAG_FLARE exactly on their flare
+    mask within the object mask, and a prediction wrong only on those rays costs no photometric loss."""
+    import torch
+
+    from lightstage.dataset.loader import RayShardDataset
+    from lightstage.dataset.shard_config import ShardConfig
+    from lightstage.dataset.shards import run_shard
+    from lightstage.records.processed import read_flare_mask, read_mask
+    from lightstage.records.shards import FLAG_FLARE, load_manifest
+    from lightstage.training.config import LossConfig
+    from lightstage.training.losses import total_loss
+
+    work.calibration.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copy(capture / "ground_truth" / "geometry.json", work.calibration)
+    run_shard(work, ShardConfig(workers=1, rays_per_image=256), progress=False)
+    m = load_manifest(work.shards_dir)
+    rays = np.concatenate([np.load(work.shards_dir / s["file"]) for s in m["shards"]])
+    bit = (rays["saturated"] & FLAG_FLARE) != 0
+    want = np.zeros(len(rays), bool)
+    i, j = rays["pixel"][:, 0].astype(np.int64), rays["pixel"][:, 1].astype(np.int64)
+    inside = (i >= 0) & (i < 64) & (j >= 0) & (j < 43)
+    for name in flagged:
+        g, c, lt = name.split("/")
+        if f"{g}/{c}" not in m["views"]:
+            continue
+        sel = inside & (rays["view"] == m["views"].index(f"{g}/{c}")) & (rays["light"] == int(lt))
+        both = read_flare_mask(work.flare_mask(FrameId(g, c, int(lt))), (43, 64)) & read_mask(
+            work.mask(ViewId(g, c))
+        )
+        want[sel] = both[j[sel], i[sel]]
+    assert bit.any() and np.array_equal(bit, want)
+    batch = RayShardDataset(work.shards_dir, 8).to_tensors(rays)
+    pred = batch["rgb"].clone()
+    pred[batch["flare"]] = 100.0  # a model that learned the glare
+    out = {"rgb": pred, "sigma": torch.zeros(len(rays), 2)}
+    assert total_loss(out, batch, LossConfig())[1]["rgb_fine"] == pytest.approx(0.0, abs=1e-9)
 
 
 def test_bad_frames_are_reported_and_skipped(tiny_capture: Path, tmp_path: Path) -> None:
