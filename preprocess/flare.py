@@ -124,9 +124,11 @@ def flare_scores_in_view(
 ) -> np.ndarray:
     """`flare_scores`, 0 for every frame whose light is not in view (`centres[k]` None): bright highlights and
     a bright object are never a flare."""
-    scores = flare_scores(lum_thumbs, sat_thumbs, mask, dilate, cutoff, factor)
     in_view = np.array([c is not None for c in centres], bool)
-    return np.where(in_view, scores, 0.0) if scores.size else scores
+    if not in_view.any():  # most views: nothing to score
+        return np.zeros(lum_thumbs.shape[0])
+    scores = flare_scores(lum_thumbs, sat_thumbs, mask, dilate, cutoff, factor)
+    return np.where(in_view, scores, 0.0)
 
 
 # ---- where a light is in view ---------------------------------------------------------------------------------
@@ -184,8 +186,8 @@ def flare_regions(
     non-increasing outward) exceeds the larger of the background level and `veil` x the frame's median object
     level: glare weaker than that changes an object pixel by less than `veil` of its typical value."""
     k = lum_thumbs.shape[0]
-    if k == 0:
-        return []
+    if all(c is None for c in centres):
+        return [None] * k
     th, tw = lum_thumbs.shape[1:]
     outside = ~mask_thumbnail(mask, dilate, factor)
     fg = mask_thumbnail(mask, 0, factor) if mask.any() else np.zeros((th, tw), bool)
