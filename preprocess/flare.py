@@ -246,7 +246,6 @@ def flare_mask(region: FlareRegion, size: tuple[int, int], factor: int) -> np.nd
     import cv2
 
     w, h = size
-    th, tw = region.blocks.shape
     up = np.repeat(np.repeat(region.blocks, factor, axis=0), factor, axis=1)[:h, :w]
     up = cv2.copyMakeBorder(
         up.astype(np.uint8), 0, h - up.shape[0], 0, w - up.shape[1], cv2.BORDER_REPLICATE
