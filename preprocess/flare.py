@@ -182,7 +182,7 @@ def flare_regions(
     Levels come from the view: a block outside the dilated mask is lit by the flare when the frame exceeds twice
     its per-block upper quartile over frames by more than the view's background level (the median upper quartile
     outside the mask, at least `floor_level`), or holds a saturated pixel (a bulb). The veil disc reaches as far
-    as the flare's radial profile outside the object (median excess per ring around the light's image, made
+    as the flare's radial profile outside the object (median excess per ring around the bulb, `bulb_centre`, made
     non-increasing outward) exceeds the larger of the background level and `veil` x the frame's median object
     level: glare weaker than that changes an object pixel by less than `veil` of its typical value."""
     k = lum_thumbs.shape[0]
@@ -205,7 +205,7 @@ def flare_regions(
         if not lit.any():
             out.append(None)
             continue
-        u, v = centres[i]
+        u, v = bulb_centre(outside & (sat_thumbs[i] > 0), centres[i], factor)
         ring = np.hypot((cols + 0.5) - u / factor, (rows + 0.5) - v / factor).astype(np.int64)
         object_level = float(np.median(lum_thumbs[i][fg])) if fg.any() else 0.0
         level = max(background, veil * object_level)
@@ -214,6 +214,20 @@ def flare_regions(
         radius = float((above[-1] + 1) * factor) if above.size else 0.0
         out.append(FlareRegion((u, v), radius, dilate_blocks(lit)))
     return out
+
+
+def bulb_centre(saturated: np.ndarray, nominal: tuple[float, float], factor: int) -> tuple[float, float]:
+    """The centre (u, v, processed pixels) of the flare: the centroid of the saturated blob outside the object
+    (the bulb, (th, tw) blocks) nearest the light's nominal image, else the nominal image itself (the bulb is
+    hidden): a stage's nominal geometry may be some pixels off the bulb actually seen."""
+    import cv2
+
+    if not saturated.any():
+        return nominal
+    n, _, _, centroids = cv2.connectedComponentsWithStats(saturated.astype(np.uint8), connectivity=8)
+    blobs = (centroids[1:n] + 0.5) * factor  # block centres -> processed pixels
+    k = int(np.argmin(np.hypot(blobs[:, 0] - nominal[0], blobs[:, 1] - nominal[1])))
+    return float(blobs[k, 0]), float(blobs[k, 1])
 
 
 def radial_profile(values: np.ndarray, ring: np.ndarray) -> np.ndarray:

@@ -252,3 +252,19 @@ def test_demo_report_shows_unflagged_and_backlit_rows() -> None:
     text = "\n".join(_eval_table(ev))
     assert "without flare and bulb pixels | 29.50 | 0.9000" in text
     assert "back-lit test images only (3) | 24.25 | 0.8000" in text
+
+
+def test_the_veil_is_centred_on_the_bulb_seen_not_the_nominal_one() -> None:
+    """Nominal geometry 30 px off: the disc follows the clipped bulb in the frame."""
+    from lightstage.preprocess.flare import bulb_centre
+
+    lum, sat, mask, _, grid = _view()
+    true = (180.0, 60.0)
+    lum[4] += _glow(true, 0.6, 24.0, grid)
+    lum[4][7:8, 22:23], sat[4][7:8, 22:23] = 80.0, 1.0  # the bulb: block (row 7, col 22), centre (180, 60)
+    centres = [None] * len(lum)
+    centres[4] = (208.0, 88.0)  # where stage.yaml puts it
+    region = flare_regions(lum, sat, mask, 8, FACTOR, centres, 0.05, 1e-4)[4]
+    assert region.centre == pytest.approx(true)
+    assert bulb_centre(np.zeros((20, 30), bool), (1.0, 2.0), FACTOR) == (1.0, 2.0)  # hidden bulb: nominal
+    assert flare_mask(region, (W, H), FACTOR)[62, 148]  # the veiled object on the bulb's side
