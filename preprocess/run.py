@@ -177,6 +177,8 @@ def run_preprocess(
             )
         summary["warnings"] = len(report["warnings"])
     summary["rejected"] = len(report["rejected_frames"])
+    summary["broken"] = len(report["broken_frames"])
+    summary["flare_flagged"] = len(report["flare"]["flagged_frames"])
     summary["problems"] = len(report["problems"])
     summary["errors"] = len(errors)
     summary["report"] = str(work.report("preprocess"))
