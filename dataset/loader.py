@@ -4,9 +4,9 @@ memory maps (bounded memory: one shard mapped per process), composes every batch
 workers without duplication, and resumes at (epoch, position).
 
 Batch dict (what the trainer consumes): origins, directions, light_positions, light_directions (B, 3) float32,
-rgb (B, 3) float32 (HDR, linear), saturated (B,) bool, zone (B,) uint8 (ZONE_* labels of lightstage.workdir).
-With `rays=False` it yields the compact records instead ({"records": int16 (B, 8)}, 16 bytes a ray) and the
-consumer computes the rays on its own device (`RayShardDataset.table(device).expand`, as the trainer does).
+rgb (B, 3) float32 (HDR, linear), saturated (B,) bool, zone (B,) uint8 (ZONE_* labels of lightstage.workdir),
+flare (B,) bool (flag bits of the ray: lightstage.records.shards). With `rays=False` it yields the compact
+records instead ({"records": int16 (B, 8)}, 16 bytes a ray) and the consumer computes the rays on its own device (`RayShardDataset.table(device).expand`, as the trainer does).
 """
 
 from __future__ import annotations

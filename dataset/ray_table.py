@@ -16,7 +16,7 @@ import torch
 
 from lightstage.cameras import camera_center
 from lightstage.errors import LightstageError
-from lightstage.records.shards import flags_saturated, flags_zone
+from lightstage.records.shards import flags_flare, flags_saturated, flags_zone
 
 UNDISTORT_ITERATIONS = 5  # cv2.undistortPoints without criteria: TermCriteria(COUNT, 5, 0.01)
 
@@ -136,4 +136,5 @@ class RayTable:
             "rgb": r[:, 0:3].view(torch.float16).to(torch.float32),
             "saturated": flags_saturated(flags),
             "zone": flags_zone(flags),
+            "flare": flags_flare(flags),
         }

@@ -16,7 +16,7 @@ from lightstage.atomic import atomic_path, write_json_atomic
 from lightstage.dataset.shard_config import ShardConfig
 from lightstage.errors import LightstageError
 from lightstage.ids import FrameId, ViewId
-from lightstage.records.processed import read_mask
+from lightstage.records.processed import read_flare_mask, read_mask
 from lightstage.records.shards import (
     COMPOSITION,
     RAY_DTYPE,
@@ -171,6 +171,7 @@ def write_view_chunk(task: ViewTask) -> dict[str, Any]:
     for light in task.lights:
         frame = FrameId(task.group, task.camera, light)
         img_rgb, img_sat = read_frame(work.frame(frame), (W, H))
+        flare = read_flare_mask(work.flare_mask(frame), (H, W))  # where the target is the pixel: no loss
         rng = np.random.default_rng([cfg.seed, task.index, light])
         for z in ZONES:
             if z == ZONE_BACKGROUND:
@@ -193,9 +194,8 @@ def write_view_chunk(task: ViewTask) -> dict[str, Any]:
                 stats["duplicated"] += max(0, q[z] - pool.size) if replace else 0
                 flat = pool[rng.choice(pool.size, size=q[z], replace=replace)]
                 pix = np.stack([flat % W, flat // W], axis=1)
-            rec = np.zeros(
-                len(pix), RAY_DTYPE
-            )  # rays come from the manifest's camera table where they are read
+            # Rays come from the manifest's camera table where they are read.
+            rec = np.zeros(len(pix), RAY_DTYPE)
             inside = (pix[:, 0] >= 0) & (pix[:, 0] < W) & (pix[:, 1] >= 0) & (pix[:, 1] < H)
             ii, jj = pix[inside, 0], pix[inside, 1]
             keep = keep_value[jj, ii]
@@ -203,7 +203,9 @@ def write_view_chunk(task: ViewTask) -> dict[str, Any]:
             rgb[inside] = np.where(keep[:, None], img_rgb[jj, ii], 0)
             sat = np.zeros(len(pix), np.uint8)
             sat[inside] = img_sat[jj, ii] & keep
-            rec["rgb"], rec["flags"] = rgb, pack_flags(sat, z)
+            fl = np.zeros(len(pix), bool)
+            fl[inside] = flare[jj, ii] & keep
+            rec["rgb"], rec["flags"] = rgb, pack_flags(sat, z, fl)
             rec["view"], rec["light"], rec["pixel"] = task.index, light, pix
             blocks[z].append(rec)
     rng = np.random.default_rng([cfg.seed, task.index, 1 << 20])

@@ -27,7 +27,7 @@ from lightstage.errors import LightstageError
 from lightstage.executor import Executor, local_executor
 from lightstage.ids import FrameId, ViewId
 from lightstage.npyio import load_npy
-from lightstage.records.processed import read_mask, read_zones
+from lightstage.records.processed import read_flare_mask, read_mask, read_zones
 from lightstage.records.shards import (
     COMPOSITION,
     MANIFEST,
@@ -168,10 +168,12 @@ def write_test_image(task: TestTask) -> dict[str, Any]:
             mask = read_mask(mask_p)
         else:
             mask = zones == ZONE_FOREGROUND
+        flare_p = work.flare_mask(FrameId(task.group, task.camera, task.light))
         arrays = {
             "rgb": np.ascontiguousarray(rgb),
             "saturated": sat,
             "mask": mask,
+            "flare": read_flare_mask(flare_p, mask.shape),
             "zones": zones,
             "K": np.array(task.K),
             "R": np.array(task.R),

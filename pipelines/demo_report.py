@@ -139,6 +139,23 @@ def _fmt(v: Any, digits: int) -> str:
     return f"{v:.{digits}f}" if isinstance(v, int | float) and not isinstance(v, bool) else "n/a"
 
 
+def _flare_rows(ev: dict[str, Any]) -> list[str]:
+    """Table rows beside the scorings: the masked figures without the frames' flare and bulb pixels, and over the
+    back-lit test images alone (training/flagged.py); none when eval.json predates them."""
+    mean, back = ev.get("mean", {}), ev.get("backlit")
+    model = [("psnr", 2), ("ssim", 4), ("lpips", 4), ("lpips_alex", 4)]
+    rows = []
+    if "psnr_unflagged" in mean:
+        cells = [_fmt(mean.get("psnr_unflagged"), 2), _fmt(mean.get("ssim_unflagged"), 4)] + ["n/a"] * 7
+        rows.append("| masked, without flare and bulb pixels | " + " | ".join(cells) + " |")
+    if isinstance(back, dict) and back.get("count"):
+        b = back.get("mean", {})
+        cells = [_fmt(b.get(k), d) for k, d in model] + [_fmt(b.get(f"ceiling_{k}"), d) for k, d in model]
+        cells.append(_fmt(b.get("baseline_psnr"), 2))
+        rows.append(f"| masked, back-lit test images only ({back['count']}) | " + " | ".join(cells) + " |")
+    return rows
+
+
 def _eval_table(ev: dict[str, Any]) -> list[str]:
     """Model, ceiling and baseline per scoring convention (eval.json with `conventions`), with the notes."""
     mean = ev.get("mean", {})
@@ -153,6 +170,7 @@ def _eval_table(ev: dict[str, Any]) -> list[str]:
         cells += [_fmt(mean.get(f"ceiling_{k}{suffix}"), d) for k, d in model]
         cells.append(_fmt(mean.get("baseline_psnr" + suffix), 2))
         lines.append(f"| {what} | " + " | ".join(cells) + " |")
+    lines += _flare_rows(ev)
     lines += [
         "",
         f"Means over {ev.get('count', '?')} test images ({ev.get('masked_count', '?')} with a foreground mask; "

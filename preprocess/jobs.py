@@ -75,6 +75,9 @@ class ViewJob:
     raw_paths: tuple[str, ...] = ()
     raw_size: tuple[int, int] = (0, 0)  # (width, height)
     exposure_scale: float = 1.0
+    # per light of `lights`, the processed pixel (u, v) of its image when the light is in view, else None
+    # (flare.light_pixels on the nominal stage geometry): only those frames can have a flare
+    light_pixels: tuple[tuple[float, float] | None, ...] = ()
 
 
 @dataclass
@@ -101,6 +104,11 @@ class ViewRecord:
     segmentation: dict[str, Any] = field(default_factory=dict)  # measured levels (segment.segment_view)
     # the camera's cross-group step (camera_task.py): pixels removed, noise fitted, IoU of the view's own mask
     consistency: dict[str, Any] = field(default_factory=dict)
+    # light -> fraction of the frame's pixels in its flare and bulb mask (WorkDir.flare_mask; flare_policy mask)
+    flared: dict[str, float] = field(default_factory=dict)
+    # light -> mean level of the frame (flare.frame_levels), for the broken-frame test (broken.py); frames whose
+    # light is in view are left out
+    frame_levels: dict[str, float] = field(default_factory=dict)
 
     @property
     def view(self) -> ViewId:

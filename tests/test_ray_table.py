@@ -158,6 +158,7 @@ class StoredRays:
                 "rgb": torch.from_numpy(r["rgb"].astype(np.float32)),
                 "saturated": torch.from_numpy(flags_saturated(r["flags"])),
                 "zone": torch.from_numpy(flags_zone(r["flags"])),
+                "flare": torch.from_numpy(flags_flare(r["flags"])),
             }
 
 

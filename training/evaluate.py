@@ -8,6 +8,9 @@ pixel of the raw target) and `_paper` (the paper code's convention, sRGB(log(1 +
 for the constant colour (PSNR, SSIM) and `ceiling_*` for a perfect prediction (noise-free render; simulated
 captures only). LPIPS is None for images under 32 px a side. `paper_protocol`: the `_paper` figures laid out
 as the paper's Tables 1 and 2 (PSNR, SSIM x 100, LPIPS), each beside its ceiling.
+`psnr_unflagged`, `ssim_unflagged`: the headline figures without the frame's flare and bulb pixels, beside
+`flagged_fraction` and `backlit` per image (training/flagged.py); `backlit` in the report holds the means over the
+back-lit test images alone (the light behind the object as seen from the camera).
 
 Exposure rule: one exposure per capture, chosen from the training targets (the 99th percentile of foreground
 luminance maps to 1, `lightstage.tonemap.auto_exposure`), stored in the checkpoint and used for every image.
@@ -31,6 +34,7 @@ from lightstage.records.shards import TestImage
 from lightstage.tonemap import tonemap, tonemap_u8
 from lightstage.training.ceiling import CleanRenders
 from lightstage.training.config import EvalConfig
+from lightstage.training.flagged import flag_scores
 from lightstage.training.inference import render_image
 from lightstage.training.metrics import (
     CONVENTIONS,
@@ -90,17 +94,20 @@ def evaluate_images(
         ref = clean.get(img.frame, (img.camera.width, img.camera.height)) if clean is not None else None
         perfect = ceiling_scores(ref, img.target, img.mask, exposure, lpips) if ref is not None else {}
         row.update({f"ceiling_{k}": perfect.get(k) for k in scores_keys()})
+        row.update(flag_scores(pred, img, exposure))
         row["masked"] = img.mask is not None
         row["seconds"] = time.perf_counter() - t0
         if out_dir is not None:
             write_image(Path(out_dir) / f"{img.name}.png", side_by_side(pred, img.masked_target, exposure))
         rows.append(row)
-    keys = [k for k in (rows[0] if rows else {}) if k not in ("name", "masked", "seconds")]
+    keys = [k for k in (rows[0] if rows else {}) if k not in ("name", "masked", "seconds", "backlit")]
     mean = {k: _mean(rows, k) for k in keys}
+    backlit = [r for r in rows if r.get("backlit")]
     return {
         "images": rows,
         "mean": mean,
         "count": len(rows),
+        "backlit": {"count": len(backlit), "mean": {k: _mean(backlit, k) for k in keys}},
         "masked_count": sum(r["masked"] for r in rows),
         "ceiling_count": sum(r["ceiling_psnr"] is not None for r in rows),
         "exposure": exposure,

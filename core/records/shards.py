@@ -2,7 +2,11 @@
 keys, and the test images (shards/test/*.npz with shards/test/index.json). One definition, both sides.
 
 Batch dict (what the trainer consumes, `BATCH_KEYS`): origins, directions, light_positions, light_directions
-(B, 3) float32, rgb (B, 3) float32 (HDR, linear), saturated (B,) bool, zone (B,) uint8 (ZONE_* of lightstage.workdir).
+(B, 3) float32, rgb (B, 3) float32 (HDR, linear), saturated (B,) bool, zone (B,) uint8 (ZONE_* of lightstage.workdir),
+flare (B,) bool (the pixel is in its frame's flare and bulb mask: no photometric loss).
+
+A ray's 16-bit `flags` hold the saturated bit, the zone and the flare bit (the target is a pixel of the frame's
+flare and bulb mask, preprocess/flare.py): `pack_flags` and `flags_*` below.
 """
 
 from __future__ import annotations
@@ -83,7 +87,16 @@ ZONE_NAMES = {ZONE_FOREGROUND: "foreground", ZONE_BAND: "band", ZONE_BACKGROUND:
 COMPOSITION = (4, 3, 1)  # eighths
 MANIFEST = "manifest.json"
 TEST_INDEX = "test/index.json"
-BATCH_KEYS = ("origins", "directions", "light_positions", "light_directions", "rgb", "saturated", "zone")
+BATCH_KEYS = (
+    "origins",
+    "directions",
+    "light_positions",
+    "light_directions",
+    "rgb",
+    "saturated",
+    "zone",
+    "flare",
+)
 
 
 def rebuild_command(shards_dir: str | os.PathLike[str]) -> str:
@@ -162,7 +175,8 @@ def load_manifest(shards_dir: str | os.PathLike[str]) -> dict[str, Any]:
 class TestImage:
     """One evaluation image: a pinhole camera, the unit light direction and the linear HDR target (H, W, 3);
     `mask`: (H, W) foreground (metrics score the target as 0 outside it; None: no mask, every pixel);
-    `frame`: the capture frame it is (None for synthetic images), so a noise-free render can be found."""
+    `frame`: the capture frame it is (None for synthetic images), so a noise-free render can be found;
+    `flare`: (H, W) the frame's flare and bulb mask (None: nothing flagged)."""
 
     name: str
     camera: PinholeCamera
@@ -171,6 +185,7 @@ class TestImage:
     saturated: np.ndarray | None = None
     mask: np.ndarray | None = None
     frame: FrameId | None = None
+    flare: np.ndarray | None = None
 
     @property
     def masked_target(self) -> np.ndarray:
@@ -197,7 +212,7 @@ def read_test_index(shards_dir: str | os.PathLike[str]) -> list[dict[str, Any]]:
 
 
 def read_test_image(path: Path) -> TestImage:
-    """One shards/test/*.npz (rgb, saturated, K, R, t, dist, width, height, light_direction; mask and the
+    """One shards/test/*.npz (rgb, saturated, K, R, t, dist, width, height, light_direction; mask, flare and the
     frame's group/camera/light when written) as a TestImage."""
     try:
         z = load_npz(path)
@@ -223,6 +238,7 @@ def read_test_image(path: Path) -> TestImage:
             np.array(z["saturated"], bool),
             mask,
             frame,
+            np.array(z["flare"], bool) if "flare" in z else None,
         )
     except (OSError, ValueError, KeyError) as e:
         raise LightstageError(f"{path}: unreadable test image ({e})") from e
