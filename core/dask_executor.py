@@ -18,6 +18,16 @@ from lightstage.executor import SINGLE_THREAD_ENV, Executor, task_name
 from lightstage.malloc import WORKER_MALLOC_ENV
 
 
+def _lost_scheduler(client: Any, detail: str) -> LightstageError:
+    """The error of a run whose scheduler went away (killed, its node lost): finished outputs are kept, so the
+    same command resumes once a scheduler (and workers) run again."""
+    where = getattr(getattr(client, "scheduler", None), "address", None) or "the dask scheduler"
+    return LightstageError(
+        f"lost the connection to dask scheduler {where} ({detail}); finished outputs are kept: "
+        "start the scheduler and workers again and rerun the same command to resume"
+    )
+
+
 class _DaskSession:
     def __init__(self, client: Any, fn: Callable[..., Any]) -> None:
         from distributed import as_completed
@@ -27,9 +37,24 @@ class _DaskSession:
         self.counter = itertools.count()
         self.queue = as_completed()
 
+    def _gone(self, exc: BaseException) -> bool:
+        """Whether `exc` means the scheduler connection is gone (not a task's own error)."""
+        from distributed.client import ClosedClientError
+        from distributed.comm.core import CommClosedError
+
+        return isinstance(exc, CommClosedError | ClosedClientError) or self.client.status in (
+            "closed",
+            "closing",
+        )
+
     def submit(self, fn: Callable[..., Any], *args: Any) -> Any:
         key = f"{self.prefix}-{next(self.counter)}"
-        fut = self.client.submit(fn, *args, key=key, pure=False)
+        try:
+            fut = self.client.submit(fn, *args, key=key, pure=False)
+        except Exception as e:
+            if self._gone(e):
+                raise _lost_scheduler(self.client, f"{type(e).__name__}: {e}") from None
+            raise
         self.queue.add(fut)
         return fut
 
@@ -39,7 +64,14 @@ class _DaskSession:
     def outcome(self, h: Any) -> tuple[bool, Any]:
         try:
             if h.status == "finished":
-                return True, h.result()
+                try:
+                    return True, h.result()
+                except Exception as e:
+                    if self._gone(e):
+                        raise _lost_scheduler(self.client, f"{type(e).__name__}: {e}") from None
+                    raise
+            if self._gone(RuntimeError()):
+                raise _lost_scheduler(self.client, f"task {h.key} {h.status} when the client closed")
             if h.status == "cancelled":
                 return False, EnvironmentFault(f"task {h.key} was cancelled by the scheduler")
             try:
@@ -47,10 +79,17 @@ class _DaskSession:
             except Exception as e:  # noqa: BLE001 - a lost future raises here
                 return False, e
         finally:
-            h.release()
+            try:
+                h.release()
+            except Exception:  # noqa: BLE001 - a closed client has nothing left to release
+                pass
 
     def cancel(self, h: Any) -> None:
-        h.cancel()
+        try:
+            h.cancel()
+        except Exception as e:  # noqa: BLE001 - cleanup after the scheduler went away: nothing to cancel there
+            if not self._gone(e):
+                raise
 
     def broken(self, exc: BaseException) -> bool:
         return False
@@ -183,4 +222,66 @@ def dask_executor(
         where = scheduler or f"LocalCluster, {workers} worker processes"
         link = getattr(client, "dashboard_link", None) if (scheduler or dashboard) else None
         print(f"dask: {where}" + (f"; dashboard {link}" if link else ""), file=sys.stderr)
+    return DaskExecutor(client, stack)
+
+
+JOBQUEUE_KINDS = ("slurm", "pbs")
+
+
+def jobqueue_cluster(kind: str, threads_per_worker: int = 1, **job: Any) -> Any:
+    """A dask-jobqueue cluster (SLURMCluster or PBSCluster) whose batch jobs each run `job["cores"] //
+    threads_per_worker` worker processes with the same per-process library threads and malloc settings as a local
+    worker (exported by the job script). `job`: dask-jobqueue's keywords (cores, memory, queue, account,
+    walltime, job_extra_directives, job_script_prologue, python, interface, local_directory, log_directory).
+    The scheduler runs in this process; no job is submitted until the cluster is scaled."""
+    try:
+        import dask_jobqueue
+    except ImportError:
+        raise LightstageError(
+            f"cluster.kind {kind}: dask-jobqueue is not installed (pip install dask-jobqueue)"
+        ) from None
+    if kind not in JOBQUEUE_KINDS:
+        raise LightstageError(f"cluster.kind: one of local, {', '.join(JOBQUEUE_KINDS)}; got {kind!r}")
+    env = {**{k: str(threads_per_worker) for k in SINGLE_THREAD_ENV}, **WORKER_MALLOC_ENV}
+    prologue = [f"export {k}={v}" for k, v in env.items()] + list(job.pop("job_script_prologue", ()))
+    cores = int(job["cores"])
+    if cores < threads_per_worker:
+        raise LightstageError(f"cluster.cores: {cores} is fewer than threads_per_worker {threads_per_worker}")
+    cls = {"slurm": dask_jobqueue.SLURMCluster, "pbs": dask_jobqueue.PBSCluster}[kind]
+    options = {"dashboard_address": ":0"}
+    if job.get("interface"):
+        options["interface"] = job["interface"]
+    return cls(
+        processes=cores // threads_per_worker,
+        job_script_prologue=prologue,
+        scheduler_options=options,
+        **{k: v for k, v in job.items() if v is not None},
+    )
+
+
+def jobqueue_executor(
+    kind: str, jobs: int, threads_per_worker: int = 1, verbose: bool = True, **job: Any
+) -> DaskExecutor:
+    """A DaskExecutor on a SLURM or PBS cluster: `jobs` batch jobs of workers (jobqueue_cluster), submitted now;
+    tasks queue on the scheduler until the jobs start. Closing the executor cancels the jobs."""
+    from distributed import Client
+
+    stack = contextlib.ExitStack()
+    cluster = jobqueue_cluster(kind, threads_per_worker, **job)
+    stack.callback(cluster.close)
+    try:
+        client = Client(cluster)
+        stack.callback(client.close)
+        client.register_plugin(library_threads_plugin(threads_per_worker))
+        cluster.scale(jobs=jobs)
+    except BaseException:
+        stack.close()
+        raise
+    if verbose:
+        link = getattr(client, "dashboard_link", None)
+        print(
+            f"dask: {kind} cluster, {jobs} jobs of {job['cores']} cores submitted"
+            + (f"; dashboard {link}" if link else ""),
+            file=sys.stderr,
+        )
     return DaskExecutor(client, stack)

@@ -108,6 +108,10 @@ class WorkDir:
     def zones(self, view: ViewId) -> Path:
         return self.view_dir(view) / "zones.png"
 
+    def flare_mask(self, frame: FrameId) -> Path:
+        """A frame's flare and bulb mask (preprocess/flare.py); absent when nothing of the frame is flagged."""
+        return self.view_dir(ViewId(frame.group, frame.camera)) / "flare" / f"{frame.light:03d}.png"
+
     def wellit(self, view: ViewId) -> Path:
         return self.view_dir(view) / "wellit.png"
 

@@ -4,7 +4,9 @@ memory maps (bounded memory: one shard mapped per process), composes every batch
 workers without duplication, and resumes at (epoch, position).
 
 Batch dict (what the trainer consumes): origins, directions, light_positions, light_directions (B, 3) float32,
-rgb (B, 3) float32 (HDR, linear), saturated (B,) bool, zone (B,) uint8 (ZONE_* labels of lightstage.workdir).
+rgb (B, 3) float32 (HDR, linear), saturated (B,) bool, zone (B,) uint8 (ZONE_* labels of lightstage.workdir),
+flare (B,) bool (flag bits of the ray: lightstage.records.shards). With `rays=False` it yields the compact
+records instead ({"records": int16 (B, 8)}, 16 bytes a ray) and the consumer computes the rays on its own device (`RayShardDataset.table(device).expand`, as the trainer does).
 """
 
 from __future__ import annotations
@@ -18,10 +20,18 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
-from lightstage.dataset.shards import verify_shard
+from lightstage.dataset.ray_table import RayTable
 from lightstage.errors import LightstageError
 from lightstage.npyio import load_npy
-from lightstage.records.shards import COMPOSITION, RAY_DTYPE, ZONE_NAMES, ZONES, load_manifest
+from lightstage.records.shards import (
+    COMPOSITION,
+    RAY_DTYPE,
+    ZONE_NAMES,
+    ZONES,
+    check_file,
+    check_size,
+    load_manifest,
+)
 
 VERIFY_MODES = ("open", "all", "never")
 
@@ -48,6 +58,7 @@ class RayShardDataset(IterableDataset):
         world_size: int | None = None,
         verify: str = "open",
         normalize: bool = False,
+        rays: bool = True,
     ) -> None:
         self.root = Path(shards_dir)
         self.manifest = load_manifest(self.root)
@@ -65,6 +76,8 @@ class RayShardDataset(IterableDataset):
         self.batch_size = batch_size
         self.per_zone = tuple(batch_size // 8 * c for c in COMPOSITION)
         self.shuffle, self.seed, self.verify, self.normalize = shuffle, seed, verify, normalize
+        self.rays = rays
+        self._table: RayTable | None = None
         self.shards = self.manifest["shards"]
         self.zone_counts = np.array(
             [[s["zones"][ZONE_NAMES[z]] for z in ZONES] for s in self.shards], np.int64
@@ -80,9 +93,12 @@ class RayShardDataset(IterableDataset):
         self.epoch = 0
         self.position = 0
         self._verified: set[int] = set()
+        if verify != "never":  # every shard's size before any is read: none is ever read as fewer rays
+            for rec in self.shards:
+                check_size(self.root, rec)
         if verify == "all":
             for i, rec in enumerate(self.shards):
-                verify_shard(self.root, rec)
+                check_file(self.root, rec)
                 self._verified.add(i)
 
     # ---- bookkeeping -----------------------------------------------------------------------------------
@@ -141,7 +157,7 @@ class RayShardDataset(IterableDataset):
         rec = self.shards[shard]
         path = self.root / rec["file"]
         if self.verify == "open" and shard not in self._verified:
-            verify_shard(self.root, rec)
+            check_file(self.root, rec)
             self._verified.add(shard)
         try:
             arr = load_npy(path, mmap_mode="r")
@@ -170,35 +186,22 @@ class RayShardDataset(IterableDataset):
             block += n
         return out
 
+    def table(self, device: torch.device | str = "cpu") -> RayTable:
+        """The manifest's cameras and lights on `device`, to compute the rays of compact records there."""
+        return RayTable(self.manifest, device)
+
+    def compact(self, rec: np.ndarray) -> dict[str, torch.Tensor]:
+        """Structured rays -> {"records": int16 (B, 8)}: their 16 bytes each, one tensor (one shared-memory
+        segment when a DataLoader worker hands the batch over)."""
+        return {"records": torch.from_numpy(rec.view(np.int16).reshape(len(rec), RAY_DTYPE.itemsize // 2))}
+
     def to_tensors(self, rec: np.ndarray) -> dict[str, torch.Tensor]:
-        """Structured rays -> the batch dict of float32 / bool / uint8 tensors."""
-        n = len(rec)
-        raw = rec.view(np.uint8).reshape(n, RAY_DTYPE.itemsize)
-        f32 = raw[:, :48].view(np.float32)
-        # Two storages per batch (float32 and uint8), each field a contiguous view: one shared-memory
-        # segment each when a DataLoader worker hands the batch over.
-        floats = torch.empty((5, n, 3), dtype=torch.float32)
-        fl = floats.numpy()
-        for i in range(4):
-            fl[i] = f32[:, 3 * i : 3 * i + 3]
-        fl[4] = raw[:, 48:54].view(np.float16)
-        flags = torch.empty((2, n), dtype=torch.uint8)
-        flags.numpy()[:] = raw[:, 54:56].T
-        batch = {
-            "origins": floats[0],
-            "directions": floats[1],
-            "light_positions": floats[2],
-            "light_directions": floats[3],
-            "rgb": floats[4],
-            "saturated": flags[0].view(torch.bool),
-            "zone": flags[1],
-        }
-        if self.normalize:
-            c = torch.tensor(self.normalization["centre"], dtype=torch.float32)
-            s = self.normalization["scale"]
-            batch["origins"] = (batch["origins"] - c) / s
-            batch["light_positions"] = (batch["light_positions"] - c) / s
-        return batch
+        """Structured rays -> the batch dict of float32 / bool / uint8 tensors (rays computed on the CPU)."""
+        if self._table is None:
+            self._table = self.table("cpu")
+        return self._table.expand(
+            self.compact(rec)["records"], self.normalization if self.normalize else None
+        )
 
     def iter_records(
         self, epoch: int, start: int = 0, worker: int = 0, num_workers: int = 1
@@ -223,7 +226,7 @@ class RayShardDataset(IterableDataset):
         for _, rec in self.iter_records(epoch, start, worker, num_workers):
             if info is None:
                 self.position += 1
-            yield self.to_tensors(rec)
+            yield self.to_tensors(rec) if self.rays else self.compact(rec)
         if info is None:
             self.set_epoch(epoch + 1)
 

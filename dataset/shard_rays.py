@@ -16,12 +16,13 @@ from lightstage.atomic import atomic_path, write_json_atomic
 from lightstage.dataset.shard_config import ShardConfig
 from lightstage.errors import LightstageError
 from lightstage.ids import FrameId, ViewId
-from lightstage.records.processed import read_mask
+from lightstage.records.processed import read_flare_mask, read_mask
 from lightstage.records.shards import (
     COMPOSITION,
     RAY_DTYPE,
     ZONE_NAMES,
     ZONES,
+    pack_flags,
 )
 from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND, WorkDir
 
@@ -31,7 +32,8 @@ def view_rays(
     K: np.ndarray, R: np.ndarray, t: np.ndarray, dist: np.ndarray, pixels: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """float32 world (origins, directions) through the centres of integer pixels (N, 2) = (i, j) of a
-    processed-resolution camera; distorted cameras are undistorted first (OpenCV)."""
+    processed-resolution camera; distorted cameras are undistorted first (OpenCV). The reference the loader's
+    torch recomputation (lightstage.dataset.ray_table) equals bit for bit."""
     from lightstage.cameras import pixel_rays, undistort_pixels
 
     o, d = pixel_rays(undistort_pixels(pixels.astype(np.float64) + 0.5, K, dist), K, R, t)
@@ -98,14 +100,8 @@ class ViewTask:
     group: str
     camera: str
     lights: tuple[int, ...]
-    K: tuple
-    R: tuple
-    t: tuple
-    dist: tuple
     width: int
     height: int
-    light_positions: tuple  # (len(lights), 3)
-    light_directions: tuple
     config: dict
     chunk: str
 
@@ -155,7 +151,6 @@ def write_view_chunk(task: ViewTask) -> dict[str, Any]:
     cfg = ShardConfig(**task.config)
     work = WorkDir.at(task.work)
     view = ViewId(task.group, task.camera)
-    K, R, t, dist = (np.array(x, np.float64) for x in (task.K, task.R, task.t, task.dist))
     W, H = task.width, task.height
     mask_path = work.mask(view)
     keep_value = read_mask(mask_path)
@@ -173,11 +168,10 @@ def write_view_chunk(task: ViewTask) -> dict[str, Any]:
     q = dict(zip(ZONES, image_quotas(cfg, pools[ZONE_FOREGROUND].size), strict=True))
     blocks: dict[int, list[np.ndarray]] = {z: [] for z in ZONES}
     stats = {"duplicated": 0, "missing": {ZONE_NAMES[z]: 0 for z in ZONES}}
-    lp = np.array(task.light_positions, np.float32).reshape(-1, 3)
-    ld = np.array(task.light_directions, np.float32).reshape(-1, 3)
-    for k, light in enumerate(task.lights):
+    for light in task.lights:
         frame = FrameId(task.group, task.camera, light)
         img_rgb, img_sat = read_frame(work.frame(frame), (W, H))
+        flare = read_flare_mask(work.flare_mask(frame), (H, W))  # where the target is the pixel: no loss
         rng = np.random.default_rng([cfg.seed, task.index, light])
         for z in ZONES:
             if z == ZONE_BACKGROUND:
@@ -200,10 +194,8 @@ def write_view_chunk(task: ViewTask) -> dict[str, Any]:
                 stats["duplicated"] += max(0, q[z] - pool.size) if replace else 0
                 flat = pool[rng.choice(pool.size, size=q[z], replace=replace)]
                 pix = np.stack([flat % W, flat // W], axis=1)
+            # Rays come from the manifest's camera table where they are read.
             rec = np.zeros(len(pix), RAY_DTYPE)
-            rec["origin"], rec["direction"] = view_rays(K, R, t, dist, pix)
-            rec["light_position"] = lp[k]
-            rec["light_direction"] = ld[k]
             inside = (pix[:, 0] >= 0) & (pix[:, 0] < W) & (pix[:, 1] >= 0) & (pix[:, 1] < H)
             ii, jj = pix[inside, 0], pix[inside, 1]
             keep = keep_value[jj, ii]
@@ -211,7 +203,9 @@ def write_view_chunk(task: ViewTask) -> dict[str, Any]:
             rgb[inside] = np.where(keep[:, None], img_rgb[jj, ii], 0)
             sat = np.zeros(len(pix), np.uint8)
             sat[inside] = img_sat[jj, ii] & keep
-            rec["rgb"], rec["saturated"], rec["zone"] = rgb, sat, z
+            fl = np.zeros(len(pix), bool)
+            fl[inside] = flare[jj, ii] & keep
+            rec["rgb"], rec["flags"] = rgb, pack_flags(sat, z, fl)
             rec["view"], rec["light"], rec["pixel"] = task.index, light, pix
             blocks[z].append(rec)
     rng = np.random.default_rng([cfg.seed, task.index, 1 << 20])

@@ -27,7 +27,7 @@ from lightstage.errors import LightstageError
 from lightstage.executor import Executor, local_executor
 from lightstage.ids import FrameId, ViewId
 from lightstage.npyio import load_npy
-from lightstage.records.processed import read_mask, read_zones
+from lightstage.records.processed import read_flare_mask, read_mask, read_zones
 from lightstage.records.shards import (
     COMPOSITION,
     MANIFEST,
@@ -35,7 +35,10 @@ from lightstage.records.shards import (
     SHARD_FORMAT_VERSION,
     ZONE_NAMES,
     ZONES,
+    check_file,
+    file_sha256,
     load_manifest,
+    read_test_index,
     write_test_index,
 )
 from lightstage.workdir import ZONE_FOREGROUND, WorkDir
@@ -125,15 +128,6 @@ def _npy_size(rays: int) -> int:
     return buf.tell() + rays * RAY_DTYPE.itemsize
 
 
-def file_sha256(path: Path, block: int = 8 << 20) -> str:
-    """sha256 of a file, read in blocks (bounded memory)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(block):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 # ---- test images -----------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class TestTask:
@@ -174,10 +168,12 @@ def write_test_image(task: TestTask) -> dict[str, Any]:
             mask = read_mask(mask_p)
         else:
             mask = zones == ZONE_FOREGROUND
+        flare_p = work.flare_mask(FrameId(task.group, task.camera, task.light))
         arrays = {
             "rgb": np.ascontiguousarray(rgb),
             "saturated": sat,
             "mask": mask,
+            "flare": read_flare_mask(flare_p, mask.shape),
             "zones": zones,
             "K": np.array(task.K),
             "R": np.array(task.R),
@@ -194,13 +190,44 @@ def write_test_image(task: TestTask) -> dict[str, Any]:
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as f:
                 (np.savez_compressed if task.compress else np.savez)(f, **arrays)
-    return {"file": f"test/{name}", "group": task.group, "camera": task.camera, "light": task.light}
+    # size and sha256 so that whatever reads the image (trainer previews, eval) refuses a truncated or foreign one
+    return {
+        "file": f"test/{name}",
+        "group": task.group,
+        "camera": task.camera,
+        "light": task.light,
+        "bytes": path.stat().st_size,
+        "sha256": file_sha256(path),
+    }
 
 
 # ---- driver ------------------------------------------------------------------------------------------------
 def _map(fn: Any, items: list[Any], executor: Executor, progress: bool, desc: str) -> list[Any]:
     """Run fn over items through the executor (bounded windows, item order)."""
     return executor.map(fn, items, desc=desc, progress=progress)
+
+
+def camera_record(camera: Any) -> dict[str, Any]:
+    """One view's calibrated camera as the manifest stores it (float64 values, exact through JSON)."""
+    return {
+        "K": np.asarray(camera.K, np.float64).tolist(),
+        "R": np.asarray(camera.R, np.float64).tolist(),
+        "t": np.asarray(camera.t, np.float64).reshape(3).tolist(),
+        "dist": np.asarray(camera.dist, np.float64).reshape(-1).tolist(),
+        "width": int(camera.width),
+        "height": int(camera.height),
+    }
+
+
+def light_table(calib: Any, groups: list[str]) -> dict[str, dict[str, list]]:
+    """Per group the world positions and directions (omega) of every light, as the manifest stores them."""
+    return {
+        g: {
+            "positions": np.asarray(calib.light_positions[g], np.float64).tolist(),
+            "directions": np.asarray(calib.light_directions(g), np.float64).tolist(),
+        }
+        for g in groups
+    }
 
 
 def _plan_shards(totals: np.ndarray, rays_per_shard: int) -> int:
@@ -251,7 +278,8 @@ def _write_shards(work: WorkDir, config: ShardConfig, executor: Executor, progre
     ).hexdigest()[:16]
     if manifest_path.is_file() and not config.force:
         m = json.loads(manifest_path.read_text())
-        if m.get("inputs_hash") == inputs_hash and all((root / s["file"]).is_file() for s in m["shards"]):
+        current = m.get("format_version") == SHARD_FORMAT_VERSION  # older formats are rewritten
+        if current and m.get("inputs_hash") == inputs_hash and all(_intact(root, s) for s in m["shards"]):
             return _summary(work, m, skipped=True, seconds=time.perf_counter() - t0)
     tmp_dir = root / "tmp"
     plan_path = tmp_dir / "plan.json"
@@ -269,6 +297,7 @@ def _write_shards(work: WorkDir, config: ShardConfig, executor: Executor, progre
 
     # phase A: one chunk per training view
     views: list[ViewId] = split.train.views()
+    cameras = [camera_record(cam(v)) for v in views]  # the rays' camera table (dataset/ray_table.py)
     view_tasks = []
     excluded = split.train.excluded
     for i, v in enumerate(views):
@@ -277,14 +306,11 @@ def _write_shards(work: WorkDir, config: ShardConfig, executor: Executor, progre
         )
         if not lights:
             continue
-        c = cam(v)
-        lp = calib.light_positions[v.group][list(lights)]
-        ld = calib.light_directions(v.group)[list(lights)]
+        c = cameras[i]
         view_tasks.append(
             ViewTask(
-                str(work.root), i, v.group, v.camera, lights,
-                c.K.tolist(), c.R.tolist(), c.t.tolist(), np.asarray(c.dist).tolist(), c.width, c.height,
-                lp.tolist(), ld.tolist(), cfg_dict, str(tmp_dir / f"view_{i:05d}.npy"),
+                str(work.root), i, v.group, v.camera, lights, c["width"], c["height"], cfg_dict,
+                str(tmp_dir / f"view_{i:05d}.npy"),
             )
         )  # fmt: skip
     t_a = time.perf_counter()
@@ -354,11 +380,14 @@ def _write_shards(work: WorkDir, config: ShardConfig, executor: Executor, progre
         "bytes_per_ray": nbytes / max(rays, 1),
         "normalization": bounds.to_dict(),
         "views": [str(v) for v in views],
+        "cameras": cameras,
+        "lights": light_table(calib, sorted({v.group for v in views})),
         "frames": int(sum(len(t.lights) for t in view_tasks)),
         "shards": records,
         "test": {"images": len(tests), "index": "test/index.json"},
         "config": {k: v for k, v in cfg_dict.items() if k != "force"},
-        "coordinates": "world (metres); apply normalization to get the unit cube",
+        "coordinates": "world (metres); apply normalization to get the unit cube; rays from `cameras` and "
+        "`lights` (lightstage.dataset.ray_table)",
     }
     write_json_atomic(manifest_path, manifest)
     shutil.rmtree(tmp_dir, ignore_errors=True)
@@ -368,6 +397,12 @@ def _write_shards(work: WorkDir, config: ShardConfig, executor: Executor, progre
         "test_images_s": round(t_c, 3),
     }
     return _summary(work, manifest, skipped=False, seconds=time.perf_counter() - t0, timings=timings)
+
+
+def _intact(root: Path, record: dict[str, Any]) -> bool:
+    """Whether a shard listed in the manifest is there with its recorded size (a rerun rebuilds otherwise)."""
+    path = root / record["file"]
+    return path.is_file() and path.stat().st_size == record.get("bytes")
 
 
 def _summary(
@@ -401,25 +436,16 @@ def _summary(
 
 # ---- reading ---------------------------------------------------------------------------------------------
 def verify_shard(shards_dir: Path, record: dict[str, Any]) -> None:
-    """Raise LightstageError naming the shard if its size or sha256 differs from the manifest."""
-    path = Path(shards_dir) / record["file"]
-    if not path.is_file():
-        raise LightstageError(f"{path}: shard missing (listed in {MANIFEST}); rerun `lightstage shard`")
-    if path.stat().st_size != record["bytes"]:
-        raise LightstageError(
-            f"{path}: shard is {path.stat().st_size} bytes, manifest says {record['bytes']} (truncated?)"
-        )
-    sha = file_sha256(path)
-    if sha != record["sha256"]:
-        raise LightstageError(
-            f"{path}: checksum mismatch (sha256 {sha[:12]}..., manifest {record['sha256'][:12]}...): the shard is "
-            "corrupt; rerun `lightstage shard WORK --force`"
-        )
+    """Raise LightstageError naming the shard and the rebuild command if its size or sha256 differs from the
+    manifest."""
+    check_file(shards_dir, record)
 
 
 def verify_shards(shards_dir: str | os.PathLike[str]) -> int:
-    """Verify every shard of a manifest; returns the number verified."""
+    """Verify every shard and test image of a manifest (size and sha256); returns the number of shards."""
     m = load_manifest(shards_dir)
     for r in m["shards"]:
         verify_shard(Path(shards_dir), r)
+    for r in read_test_index(shards_dir):
+        check_file(shards_dir, r)
     return len(m["shards"])

@@ -1,5 +1,8 @@
 """The split stage: a protocol (dataset/protocols.py) resolved against the capture's stage into
-`WORK/split.json` (lightstage.records.split), with overlap validation and preprocess rejections excluded and counted.
+`WORK/split.json` (lightstage.records.split), with overlap validation and preprocess rejections excluded and counted:
+frames preprocess could not process, broken frames (a light misfired, a wrong exposure: preprocess/broken.py) and,
+under flare_policy drop only, frames rejected for a flare. Frames with a bulb or flare in view stay in the split
+under the default flare_policy mask; their flare and bulb pixels are flagged instead (docs/preprocess.md).
 
 Light and camera indices are 0-based everywhere here; the paper's 1-based numbers pass through
 `lightstage.lights.paper_number_to_index` only.
@@ -74,8 +77,8 @@ def work_stage(work: WorkDir, preset: str | None = None) -> Stage:
 
 
 def rejected_frames(work: WorkDir) -> set[FrameId]:
-    """Frames preprocess rejected (flare: `rejected_frames`) or could not process (`problems`), from
-    WORK/reports/preprocess.json; empty when the report is absent."""
+    """Frames preprocess rejected (`rejected_frames`: broken frames, and flare frames under flare_policy drop) or
+    could not process (`problems`), from WORK/reports/preprocess.json; empty when the report is absent."""
     path = work.report("preprocess")
     if not path.is_file():
         return set()

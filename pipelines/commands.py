@@ -70,6 +70,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     show = cfg_sub.add_parser("show", help="print the effective config (defaults filled in) as YAML")
     show.add_argument("config", nargs="?", help="pipeline config file or built-in name (default: default)")
     show.set_defaults(func=_config_show)
+    js = cfg_sub.add_parser(
+        "job-script", help="print the batch script of one job of dask workers (cluster kind slurm or pbs)"
+    )
+    js.add_argument("config", help="pipeline config file with cluster: {kind: slurm|pbs, ...}")
+    js.set_defaults(func=_config_job_script)
 
 
 def _run_target(args: argparse.Namespace):  # noqa: ANN202 - (PipelineConfig, capture), imported lazily
@@ -151,6 +156,18 @@ def _demo(args: argparse.Namespace) -> int:
         scheduler=args.scheduler,
         progress=not args.quiet,
     )
+    return 0
+
+
+def _config_job_script(args: argparse.Namespace) -> int:
+    from lightstage.errors import LightstageError
+    from lightstage.pipelines.cluster import job_script
+    from lightstage.pipelines.config import load_pipeline_config
+
+    config = load_pipeline_config(args.config)
+    if config.cluster.kind == "local":
+        raise LightstageError(f"{config.source}: cluster.kind is local; a job script needs kind slurm or pbs")
+    print(job_script(config.cluster), end="")
     return 0
 
 

@@ -139,27 +139,63 @@ def _fmt(v: Any, digits: int) -> str:
     return f"{v:.{digits}f}" if isinstance(v, int | float) and not isinstance(v, bool) else "n/a"
 
 
+def _flare_rows(ev: dict[str, Any]) -> list[str]:
+    """Table rows beside the scorings: the masked figures without the frames' flare and bulb pixels, and over the
+    back-lit test images alone (training/flagged.py); none when eval.json predates them."""
+    mean, back = ev.get("mean", {}), ev.get("backlit")
+    model = [("psnr", 2), ("ssim", 4), ("lpips", 4), ("lpips_alex", 4)]
+    rows = []
+    if "psnr_unflagged" in mean:
+        cells = [_fmt(mean.get("psnr_unflagged"), 2), _fmt(mean.get("ssim_unflagged"), 4)] + ["n/a"] * 7
+        rows.append("| masked, without flare and bulb pixels | " + " | ".join(cells) + " |")
+    if isinstance(back, dict) and back.get("count"):
+        b = back.get("mean", {})
+        cells = [_fmt(b.get(k), d) for k, d in model] + [_fmt(b.get(f"ceiling_{k}"), d) for k, d in model]
+        cells.append(_fmt(b.get("baseline_psnr"), 2))
+        rows.append(f"| masked, back-lit test images only ({back['count']}) | " + " | ".join(cells) + " |")
+    return rows
+
+
 def _eval_table(ev: dict[str, Any]) -> list[str]:
     """Model, ceiling and baseline per scoring convention (eval.json with `conventions`), with the notes."""
     mean = ev.get("mean", {})
     lines = [
-        "| scoring | PSNR (dB) | SSIM | LPIPS | ceiling PSNR | ceiling SSIM | ceiling LPIPS | baseline PSNR |",
-        "|---|---|---|---|---|---|---|---|",
+        "| scoring | PSNR (dB) | SSIM | LPIPS VGG | LPIPS Alex | ceiling PSNR | ceiling SSIM | ceiling LPIPS VGG "
+        "| ceiling LPIPS Alex | baseline PSNR |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for suffix, what in SCORINGS:
-        lines.append(
-            f"| {what} | {_fmt(mean.get('psnr' + suffix), 2)} | {_fmt(mean.get('ssim' + suffix), 4)} | "
-            f"{_fmt(mean.get('lpips' + suffix), 4)} | {_fmt(mean.get('ceiling_psnr' + suffix), 2)} | "
-            f"{_fmt(mean.get('ceiling_ssim' + suffix), 4)} | {_fmt(mean.get('ceiling_lpips' + suffix), 4)} | "
-            f"{_fmt(mean.get('baseline_psnr' + suffix), 2)} |"
-        )
+        model = [("psnr", 2), ("ssim", 4), ("lpips", 4), ("lpips_alex", 4)]
+        cells = [_fmt(mean.get(k + suffix), d) for k, d in model]
+        cells += [_fmt(mean.get(f"ceiling_{k}{suffix}"), d) for k, d in model]
+        cells.append(_fmt(mean.get("baseline_psnr" + suffix), 2))
+        lines.append(f"| {what} | " + " | ".join(cells) + " |")
+    lines += _flare_rows(ev)
     lines += [
         "",
         f"Means over {ev.get('count', '?')} test images ({ev.get('masked_count', '?')} with a foreground mask; "
         "outside it the target is 0, as in training and the paper's code). The ceiling is what a perfect "
         f"prediction scores on the same images ({ev.get('ceiling_count', 0)} of them): {ev.get('ceiling', 'n/a')}. "
-        f"LPIPS: {ev.get('lpips_note', ev.get('lpips', 'n/a'))}. SSIM: {ev.get('ssim', 'n/a')}. The baseline "
+        f"LPIPS: {ev.get('lpips_note', 'n/a')}. SSIM: {ev.get('ssim', 'n/a')}. The baseline "
         "predicts the mean training colour everywhere. Definitions: docs/model.md (Evaluation).",
+    ]
+    return lines
+
+
+def _paper_protocol_table(ev: dict[str, Any]) -> list[str]:
+    """eval.json's `paper_protocol`: the paper's Table 1/2 rows (its code's convention), ceiling beside."""
+    pp = ev.get("paper_protocol")
+    if not isinstance(pp, dict) or not pp.get("rows"):
+        return ["(no paper-protocol table in reports/eval.json)"]
+    lines = ["| metric | this capture | ceiling |", "|---|---|---|"]
+    for row in pp["rows"]:
+        digits = 3 if "LPIPS" in row["metric"] else 1
+        lines.append(f"| {row['metric']} | {_fmt(row['ours'], digits)} | {_fmt(row['ceiling'], digits)} |")
+    lines += [
+        "",
+        f"Means over the {pp.get('images', '?')} images of the {pp.get('split', 'test')} split, scored as the "
+        f"paper's code does: {pp.get('convention', 'n/a')}. Rows and precision as the paper's Tables 1 and 2 "
+        "(SSIM x 100; LPIPS VGG is what its code reports). The ceiling is a perfect prediction's score.",
     ]
     return lines
 
@@ -375,6 +411,8 @@ def write_report(
 
     lines += ["", "## Metrics (test split)", ""]
     lines += _eval_table(ev) if "conventions" in ev else _metrics_table(ev)
+    lines += ["", "## Paper protocol (test split, the paper code's convention)", ""]
+    lines += _paper_protocol_table(ev)
 
     lines += ["", "## Environment-map relighting", ""]
     relit_pngs = sorted((work.root / "relight").glob("*.png"))

@@ -84,7 +84,19 @@ class PreprocessConfig:
     # ---- flare / outlier frames
     flare_dilate: int = 8  # mask dilation (pixels) before measuring energy outside it
     flare_thumb: int = 8  # per-frame thumbnails for flare scoring are this many times smaller
-    flare_threshold: float = 0.15  # reject a frame when its flare score exceeds this
+    # what a frame with a bulb or flare in view becomes (docs/preprocess.md): mask (the frame stays in the split;
+    # its flare and bulb pixels are flagged in preprocess/views/<g>/<c>/flare/<lll>.png, carry a flag bit in the
+    # shards and no loss) | drop (the frame is rejected when its flare score exceeds flare_threshold)
+    flare_policy: str = "mask"
+    flare_threshold: float = 0.15  # `drop`: reject a frame when its flare score exceeds this
+    flare_margin: float = (
+        0.1  # a light is in view within this fraction of the frame diagonal outside the frame
+    )
+    flare_veil: float = 0.05  # the veil disc reaches where the flare adds this fraction of the object's level
+    # the frame-level drop (preprocess/broken.py): a frame this many robust spreads, and at least min_stops, from
+    # the same camera and light in the other groups is broken (a light misfired, a wrong exposure)
+    broken_sigmas: float = 6.0
+    broken_min_stops: float = 1.0
     max_lost_fraction: float = 0.1  # flag views that lose more than this fraction of frames (bad + rejected)
     # ---- SfM images (calibration's input, preprocess/sfm_image.py)
     sfm_max_side: int = (
@@ -119,6 +131,8 @@ class PreprocessConfig:
             raise bad(
                 "brightness_quantiles", "expected comma-separated fractions in (0, 1), and optionally mean"
             )
+        if self.flare_policy not in ("mask", "drop"):
+            raise bad("flare_policy", "expected mask or drop")
         if self.segmentation not in ("adaptive", "lit_fraction"):
             raise bad("segmentation", "expected adaptive or lit_fraction")
         if self.compression not in COMPRESSIONS:
@@ -150,6 +164,9 @@ class PreprocessConfig:
             "lit_floor",
             "centre_weight",
             "flare_threshold",
+            "flare_margin",
+            "broken_sigmas",
+            "broken_min_stops",
             "exposure",
             "background_sigmas",
             "min_contrast_stops",
@@ -171,6 +188,7 @@ class PreprocessConfig:
             "flag_min_fraction",
             "flag_max_fraction",
             "consistency_max_removed",
+            "flare_veil",
         ):
             if not 0 <= getattr(self, key) <= 1:
                 raise bad(key, "expected a fraction in [0, 1]")
@@ -217,6 +235,8 @@ _NOT_IN_VIEW_KEY = (
     "consistency",
     "consistency_max_removed",
     "accept_masks",
+    "broken_sigmas",  # the broken-frame test runs on every view's levels, in the report
+    "broken_min_stops",
 )
 
 # Bumped when the statistics or segmentation change meaning, so stale view outputs are recomputed.

@@ -76,6 +76,9 @@ class ViewJob:
     raw_size: tuple[int, int] = (0, 0)  # (width, height)
     exposure_scale: float = 1.0
     user_mask: str | None = None  # the capture's own mask of this view (masks/<g>/<c>.png), used as it is
+    # per light of `lights`, the processed pixel (u, v) of its image when the light is in view, else None
+    # (flare.light_pixels on the nominal stage geometry): only those frames can have a flare
+    light_pixels: tuple[tuple[float, float] | None, ...] = ()
 
 
 @dataclass
@@ -105,6 +108,11 @@ class ViewRecord:
     # the capture's own mask, when it has one: {"path", "signature" ([size, mtime]), "iou_own": IoU of the mask
     # preprocess computed against it}; the view's mask is then that mask
     user_mask: dict[str, Any] = field(default_factory=dict)
+    # light -> fraction of the frame's pixels in its flare and bulb mask (WorkDir.flare_mask; flare_policy mask)
+    flared: dict[str, float] = field(default_factory=dict)
+    # light -> mean level of the frame (flare.frame_levels), for the broken-frame test (broken.py); frames whose
+    # light is in view are left out
+    frame_levels: dict[str, float] = field(default_factory=dict)
 
     @property
     def view(self) -> ViewId:

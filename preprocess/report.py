@@ -214,10 +214,20 @@ def build_report(
     finished_before: int,
     exposure: float,
 ) -> dict[str, Any]:
-    """The stage report: counts, problems, flare scores, rejects, flagged views, segmentation IoU."""
+    """The stage report: counts, problems, flare scores and flagged frames, broken frames, rejects (broken
+    frames, and flare frames under flare_policy drop: the split leaves them out), flagged views, segmentation IoU."""
+    from lightstage.preprocess.broken import broken_frames
+
     n_lights = len(capture.stage.lights)
     problems, rejected, flagged, scores, ious = [], [], [], {}, {}
     masks_flagged: list[dict[str, Any]] = []
+    flare_flagged: list[dict[str, Any]] = []
+    levels = {v: {int(lt): x for lt, x in r.frame_levels.items()} for v, r in records.items()}
+    broken = broken_frames(levels, config.broken_sigmas, config.broken_min_stops)
+    broken_per_view: dict[ViewId, int] = {}
+    for frame in broken:
+        view = ViewId(frame.group, frame.camera)
+        broken_per_view[view] = broken_per_view.get(view, 0) + 1
     for job in jobs:
         view = ViewId(job.group, job.camera)
         rec = records.get(view)
@@ -227,7 +237,11 @@ def build_report(
             problems.append({"frame": str(FrameId(view.group, view.camera, int(lt))), "reason": reason})
         rejected.extend(str(FrameId(view.group, view.camera, lt)) for lt in rec.rejected)
         scores[str(view)] = rec.flare_scores
-        lost = len(rec.problems) + len(rec.rejected)
+        flare_flagged.extend(
+            {"frame": str(FrameId(view.group, view.camera, int(lt))), "fraction": f}
+            for lt, f in sorted(rec.flared.items(), key=lambda kv: int(kv[0]))
+        )
+        lost = len(rec.problems) + len(rec.rejected) + broken_per_view.get(view, 0)
         if n_lights and lost / n_lights > config.max_lost_fraction:
             flagged.append(
                 {
@@ -235,6 +249,7 @@ def build_report(
                     "lost": lost,
                     "bad": len(rec.problems),
                     "rejected": len(rec.rejected),
+                    "broken": broken_per_view.get(view, 0),
                     "fraction": round(lost / n_lights, 4),
                 }
             )
@@ -259,7 +274,9 @@ def build_report(
         "chunks_resumed": sum(1 for c in chunk_results if c.resumed),
         "frames_ok": sum(len(r.lights) for r in records.values()),
         "bad": len(problems),
-        "rejected": len(rejected),
+        "rejected": len(rejected) + len(broken),
+        "broken": len(broken),
+        "flare_flagged": len(flare_flagged),
         "flagged_views": len(flagged),
         "flagged_masks": len(masks_flagged),
     }
@@ -276,11 +293,18 @@ def build_report(
         "exposure": exposure,
         "counts": counts,
         "problems": problems,
-        "rejected_frames": rejected,
+        "rejected_frames": rejected + [str(f) for f in broken],
+        "broken_frames": [{"frame": str(f), "reason": why} for f, why in broken.items()],
         "flagged_views": flagged,
         "flagged_masks": masks_flagged,
-        "flare": {"threshold": config.flare_threshold, "scores": scores},
+        "flare": {
+            "policy": config.flare_policy,
+            "threshold": config.flare_threshold,
+            "scores": scores,
+            "flagged_frames": flare_flagged,
+        },
         "warnings": [f"view {f['view']} lost {f['lost']} of {n_lights} frames" for f in flagged]
+        + [f"frame {f} dropped: {why}" for f, why in list(broken.items())[:20]]
         + [f"view {f['view']}: suspicious mask: {'; '.join(f['reasons'])}" for f in masks_flagged],
         "errors": errors,
     }

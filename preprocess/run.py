@@ -26,6 +26,7 @@ from lightstage.executor import Executor, LoopExecutor, TaskFailure
 from lightstage.ids import FrameId, ViewId
 from lightstage.preprocess.camera_task import CameraJob, camera_done, camera_key, finalise_camera
 from lightstage.preprocess.config import PreprocessConfig
+from lightstage.preprocess.flare import light_pixels
 from lightstage.preprocess.frame_task import process_chunk
 from lightstage.preprocess.jobs import (
     ChunkJob,
@@ -66,6 +67,12 @@ def run_preprocess(
     view_jobs: list[ViewJob] = []
     chunk_jobs: dict[ViewId, list[ChunkJob]] = {}
     for view in capture.views():
+        in_view = light_pixels(
+            stage.view_camera(view.group, view.camera),
+            stage.light_positions_world(view.group),
+            size,
+            config.flare_margin,
+        )
         raw = tuple(str(capture.frame_path(FrameId(view.group, view.camera, lt))) for lt in lights)
         gt = GroundTruth.of(capture.root).mask(view)
         user = capture.user_mask(view)
@@ -85,6 +92,7 @@ def run_preprocess(
                 (stage.width, stage.height),
                 capture.info.exposure_scale,
                 str(user) if user.is_file() else None,
+                tuple(in_view),
             )
         )
         chunk_jobs[view] = [
@@ -172,6 +180,8 @@ def run_preprocess(
             )
         summary["warnings"] = len(report["warnings"])
     summary["rejected"] = len(report["rejected_frames"])
+    summary["broken"] = len(report["broken_frames"])
+    summary["flare_flagged"] = len(report["flare"]["flagged_frames"])
     summary["problems"] = len(report["problems"])
     summary["errors"] = len(errors)
     summary["report"] = str(work.report("preprocess"))

@@ -35,7 +35,7 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
     """Merge a view's chunk partials (tree), segment, score flares, write the view's outputs; view.json
     last. `chunk_records` (from this run's chunk tasks) only feed the record's timings."""
     from lightstage.frames import write_exr, write_image
-    from lightstage.preprocess.flare import flare_scores
+    from lightstage.preprocess.flare import view_flares, write_flare_masks
     from lightstage.preprocess.segment import iou, mask_flags, segment_masks, zone_map
     from lightstage.preprocess.sfm_image import upsample_mask
     from lightstage.preprocess.stats import ViewStats, empty_stats, merge_tree
@@ -87,14 +87,15 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
     zones = zone_map(mask, cfg.band_width)
     lum_thumbs = np.concatenate(thumbs) if thumbs else np.zeros((0, 1, 1), np.float32)
     sat_thumbs = np.concatenate(sthumbs) if sthumbs else np.zeros((0, 1, 1), np.float32)
-    scores = flare_scores(lum_thumbs, sat_thumbs, mask, cfg.flare_dilate, job.cutoff, cfg.flare_thumb)
     lights = list(stats.lights)
-    rejected = [lt for lt, s in zip(lights, scores, strict=True) if s > cfg.flare_threshold]
+    pixels = dict(zip(job.lights, job.light_pixels, strict=True)) if job.light_pixels else {}
+    flares = view_flares(lum_thumbs, sat_thumbs, mask, lights, pixels, cfg, job.cutoff)
+    scores, rejected = flares.scores, flares.rejected
     level = foreground_level(stats.mean, mask, cfg.exposure_percentile)
     gt_iou = None
     if job.gt_mask and Path(job.gt_mask).is_file():
         gt_iou = iou(mask, read_gt_mask(job.gt_mask, (w, h)))
-    sfm, sfm_lights = _sfm_image(work, job, set(lights) - set(rejected))
+    sfm, sfm_lights = _sfm_image(work, job, set(lights) - set(rejected) - set(flares.regions))
     sfm_mask = upsample_mask(mask, (sfm.shape[1], sfm.shape[0])) > 0
     sfm_level = foreground_level(sfm, sfm_mask, cfg.exposure_percentile)
 
@@ -115,6 +116,7 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
     write_exr(work.sfm_hdr(view), to_half(sfm), compression="zip")
     write_image(work.mask(view), (mask * 255).astype(np.uint8))
     write_image(work.zones(view), zones)
+    flared = write_flare_masks(work, view, flares.regions, (w, h), cfg.flare_thumb)
     record = ViewRecord(
         group=job.group,
         camera=job.camera,
@@ -138,6 +140,8 @@ def process_view(job: ViewJob, chunk_records: list[ChunkRecord] | None = None) -
         flags=mask_flags(mask, cfg),
         segmentation=seg_info,
         user_mask=user,
+        flared=flared,
+        frame_levels={str(lt): x for lt, x in flares.levels.items()},
     )
     write_json_atomic(vdir / VIEW_RECORD, asdict(record))
     for p in paths:
@@ -252,6 +256,9 @@ def view_finished(work: WorkDir, job: ViewJob) -> ViewRecord | None:
         work.view_dir(v) / "stats.npz",
     ):
         if not p.is_file():
+            return None
+    for lt in record.flared:
+        if not work.flare_mask(FrameId(job.group, job.camera, int(lt))).is_file():
             return None
     for lt in record.lights:
         if not processed_ok(work.frame(FrameId(job.group, job.camera, lt)), job.size):

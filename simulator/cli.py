@@ -17,7 +17,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "capture.yaml, half EXR frames, a mirror-ball light probe (probe/), ground_truth/ and contact_sheet.png.",
     )
     p.add_argument("out", type=Path, help="output capture directory (must be absent or empty)")
-    p.add_argument("--preset", default="tiny", help="tiny | small | paper (paper needs all three selectors)")
+    p.add_argument(
+        "--preset",
+        default="tiny",
+        help="tiny | small | paper-512 (the paper's 59,580 frames at 512 x 344) | paper (needs all three selectors)",
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same bytes)")
     p.add_argument("--groups", help="group names or indices, e.g. 000,040 or 0-2")
     p.add_argument("--cameras", help="camera ids or indices, e.g. cam00,cam03 or 0-4")

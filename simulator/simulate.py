@@ -75,6 +75,9 @@ SIM_PRESETS: dict[str, SimPreset] = {
     "tiny": SimPreset("tiny", 9, 4, 12, 256, 172, clean_lights=3, camera_distance=1.1),
     "small": SimPreset("small", 9, 20, 32, 768, 512, clean_lights=4, camera_distance=1.1, realism="stage"),
     "paper": SimPreset("paper", 9, 20, 331, *PAPER_RESOLUTION, clean_lights=2, requires_selection=True),
+    # the paper's geometry and frame count (9 x 20 x 331 = 59,580 frames) at a raw size that simulates whole:
+    # the scale bench's capture, and tests' paper-geometry captures (with a subset of lights)
+    "paper-512": SimPreset("paper-512", 9, 20, 331, 512, 344, clean_lights=2),
 }
 
 

@@ -228,3 +228,47 @@ def test_checkpoint_that_does_not_fit_the_model_is_one_line(work: WorkDir, tmp_p
     assert train(work, write_config(tmp_path / "b.yaml", model={"mlp": {"width": 32}})) == 2
     line = one_error_line(capsys.readouterr().err)
     assert line.startswith(f"lightstage: error: {path}: does not fit this model (")
+
+
+# ---- damaged shards ---------------------------------------------------------------------------------------
+def _shard_records(work: WorkDir) -> list[dict]:
+    from lightstage.records.shards import load_manifest
+
+    return load_manifest(work.shards_dir)["shards"]
+
+
+def test_truncated_shard_stops_training_naming_it(work: WorkDir, tmp_path: Path, capsys) -> None:
+    """A shard cut to 1000 bytes (a copy cut short) is refused before training reads anything, naming the shard
+    and the command that rebuilds it, even when the short run would never reach that shard."""
+    last = work.shards_dir / _shard_records(work)[-1]["file"]
+    last.write_bytes(last.read_bytes()[:1000])
+    config = write_config(tmp_path / "micro.yaml", eval={"every": 0})
+    assert train(work, config) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert f"{last}: is 1000 bytes, manifest says" in line
+    assert f"lightstage shard {work.root.resolve()} --force" in line
+    assert not (work.train_dir / CHECKPOINT_NAME).exists()
+    # the command the message names rebuilds the shards (the fixture's settings as flags); then training runs
+    flags = ["--workers", "1", "--rays-per-image", "64", "--rays-per-shard", "256"]
+    assert cli_main(["shard", str(work.root), "--force", *flags]) == 0
+    assert train(work, config) == 0
+
+
+def test_foreign_shard_and_truncated_test_image_are_refused(work: WorkDir, tmp_path: Path, capsys) -> None:
+    """A shard of the right size from another run (its checksum differs) and a truncated test image: each an
+    error naming the file, never read."""
+    paths = [work.shards_dir / r["file"] for r in _shard_records(work)]
+    originals = [p.read_bytes() for p in paths]
+    for p, mine, other in zip(paths, originals, originals[1:] + originals[:1], strict=True):
+        p.write_bytes(other[: len(mine)].ljust(len(mine), b"\0"))  # each holds another's rays, its own size
+    config = write_config(tmp_path / "micro.yaml", eval={"every": 0})
+    assert train(work, config) == 2
+    assert "checksum mismatch" in one_error_line(capsys.readouterr().err)
+    for p, data in zip(paths, originals, strict=True):
+        p.write_bytes(data)
+    from lightstage.records.shards import read_test_index
+
+    test = work.shards_dir / read_test_index(work.shards_dir)[0]["file"]
+    test.write_bytes(test.read_bytes()[:1000])
+    assert train(work, write_config(tmp_path / "previews.yaml")) == 2  # previews read the test images
+    assert f"{test}: is 1000 bytes, manifest says" in one_error_line(capsys.readouterr().err)

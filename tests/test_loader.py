@@ -10,6 +10,7 @@ import torch
 from support.fixtures import make_synthetic_work
 
 from lightstage.dataset.loader import RayLoader, RayShardDataset
+from lightstage.dataset.ray_table import RayTable
 from lightstage.dataset.shard_config import ShardConfig
 from lightstage.dataset.shards import run_shard
 from lightstage.dataset.split import SplitConfig, run_split
@@ -38,11 +39,11 @@ def _keys(batch: dict[str, torch.Tensor]) -> list[bytes]:
 
 def _all_shard_keys(shards_dir) -> list[bytes]:
     m = load_manifest(shards_dir)
+    table = RayTable(m)
     out = []
     for s in m["shards"]:
         a = np.load(shards_dir / s["file"])
-        x = np.concatenate([a["origin"], a["direction"], a["light_direction"]], axis=1)
-        out += [row.tobytes() for row in x]
+        out += _keys(table.expand(torch.from_numpy(a.view(np.int16).reshape(len(a), 8))))
     return out
 
 

@@ -1,5 +1,5 @@
 """The weighted L2 equals its formula, stops the gradient through its denominator, is one-sided on saturated
-targets; the mask loss penalises background densities only."""
+targets; the mask loss penalises the densities of background rays only, band rays (outside the mask) included."""
 
 from __future__ import annotations
 
@@ -62,6 +62,27 @@ def test_mask_loss_and_total():
     )
     torch.testing.assert_close(total, expect)
     assert set(parts) == {"rgb_fine", "rgb_coarse", "mask"}
+
+
+def test_density_loss_covers_band_background_rays():
+    """The paper's L2 is on every ray whose target pixel is background: the near-silhouette band's rays are
+    outside the mask (dataset/shard_rays.py sampling_zones), so they count; foreground rays do not."""
+    from lightstage.dataset.shard_rays import sampling_zones
+    from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND
+
+    mask = torch.zeros(32, 32, dtype=torch.bool)
+    mask[12:20, 12:20] = True
+    zones = torch.from_numpy(sampling_zones(mask.numpy(), band_fraction=4 / 32))
+    assert not bool(mask[zones == ZONE_BAND].any())  # band pixels are background pixels
+    sigma = torch.tensor([[1.0, 1.0], [2.0, 2.0], [3.0, 3.0]])  # fg, band, background rays
+    outputs = {"rgb": torch.zeros(3, 3), "sigma": sigma}
+    zone = torch.tensor([ZONE_FOREGROUND, ZONE_BAND, ZONE_BACKGROUND])
+    batch = {"rgb": torch.zeros(3, 3), "zone": zone, "saturated": torch.zeros(3, dtype=torch.bool)}
+    cfg = LossConfig(rgb_fine=1.0, rgb_coarse=0.0, mask=1.0)
+    _, parts = total_loss(outputs, batch, cfg)
+    assert parts["mask"] == pytest.approx((4 + 4 + 9 + 9) / 4)  # band and background, not foreground
+    batch["zone"] = torch.tensor([ZONE_FOREGROUND, ZONE_BAND, ZONE_FOREGROUND])
+    assert total_loss(outputs, batch, cfg)[1]["mask"] == pytest.approx(4.0)  # a band ray alone is penalised
 
 
 def test_epsilon_measured_from_the_data_level():

@@ -92,7 +92,7 @@ def test_report_shows_the_psnr_curve_the_ceiling_and_labelled_predictions(tmp_pa
         write_image(work.eval_dir / f"{name}.png", np.full((24, 96, 3), 60 * k, np.uint8))
         rows.append({"name": name, "psnr": 25.0 + k, "psnr_full": 22.0 + k, "ceiling_psnr": 40.0 + k})
     mean = {"psnr": 26.0, "ssim": 0.9, "ceiling_psnr": 41.0, "ceiling_ssim": 0.99, "baseline_psnr": 12.0}
-    mean.update(psnr_full=23.0, psnr_paper=30.0, ceiling_psnr_full=33.0, lpips=None)
+    mean.update(psnr_full=23.0, psnr_paper=30.0, ceiling_psnr_full=33.0, lpips=0.12, lpips_alex=None)
     work.report("eval").parent.mkdir(parents=True, exist_ok=True)
     work.report("eval").write_text(
         json.dumps(
@@ -105,7 +105,17 @@ def test_report_shows_the_psnr_curve_the_ceiling_and_labelled_predictions(tmp_pa
                 "ceiling": "noise-free renders of the simulated capture",
                 "conventions": {"<metric>": "masked"},
                 "checkpoint_step": 40,
-                "lpips_note": "unavailable: set eval.lpips_weights",
+                "lpips_note": "LPIPS v0.1 (lpips = vgg, lpips_alex = alex)",
+                "paper_protocol": {
+                    "convention": "masked, the paper code's",
+                    "split": "test",
+                    "images": 3,
+                    "rows": [
+                        {"metric": "PSNR (dB, higher is better)", "ours": 30.0, "ceiling": 41.23},
+                        {"metric": "SSIM x 100 (higher is better)", "ours": 95.04, "ceiling": None},
+                        {"metric": "LPIPS VGG (lower is better)", "ours": 0.0921, "ceiling": 0.0113},
+                    ],
+                },
             }
         )
     )
@@ -117,7 +127,13 @@ def test_report_shows_the_psnr_curve_the_ceiling_and_labelled_predictions(tmp_pa
     text = write_report(work, {}, {}, 60.0, "tiny (seed 0)").read_text()
     assert "![test PSNR over training](report/psnr_curve.png)" in text
     assert (work.root / "report" / "psnr_curve.png").is_file()
-    assert "| masked, our tonemap | 26.00 | 0.9000 | n/a | 41.00 | 0.9900 | n/a | 12.00 |" in text
+    assert (
+        "| masked, our tonemap | 26.00 | 0.9000 | 0.1200 | n/a | 41.00 | 0.9900 | n/a | n/a | 12.00 |" in text
+    )
+    assert "LPIPS: LPIPS v0.1 (lpips = vgg" in text
+    assert "| PSNR (dB, higher is better) | 30.0 | 41.2 |" in text  # the paper-protocol table
+    assert "| SSIM x 100 (higher is better) | 95.0 | n/a |" in text
+    assert "| LPIPS VGG (lower is better) | 0.092 | 0.011 |" in text
     assert (
         "| full frame, our tonemap | 23.00 |" in text and "paper code's sRGB(log(1 + hdr)) | 30.00 |" in text
     )

@@ -7,10 +7,12 @@ import shutil
 
 import numpy as np
 import pytest
+import torch
 from support.fixtures import SPHERE_CENTRE, SPHERE_RADIUS, make_synthetic_work
 
 from lightstage.cameras import pixel_rays
 from lightstage.dataset.bounds import BoundsConfig, load_bounds, run_bounds
+from lightstage.dataset.ray_table import RayTable
 from lightstage.dataset.shard_config import ShardConfig
 from lightstage.dataset.shard_rays import sampling_zones, view_rays
 from lightstage.dataset.shards import run_shard, verify_shards
@@ -20,7 +22,7 @@ from lightstage.frames import read_exr
 from lightstage.ids import FrameId, ViewId
 from lightstage.pipelines.cli import main
 from lightstage.records.calibration import Calibration
-from lightstage.records.shards import RAY_DTYPE, load_manifest
+from lightstage.records.shards import RAY_DTYPE, flags_saturated, flags_zone, load_manifest
 from lightstage.records.split import load_split
 from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND, WorkDir
 
@@ -52,20 +54,20 @@ def test_manifest_and_shards_keep_every_sampled_ray(sharded):
     assert sum(len(s) for s in shards) == m["rays"] == 64 * 18
     assert len(shards) == round(m["rays"] / 256)
     for s, rec in zip(shards, m["shards"], strict=True):
-        assert s.dtype == RAY_DTYPE and RAY_DTYPE.itemsize == 64
+        assert s.dtype == RAY_DTYPE and RAY_DTYPE.itemsize == 16
         fg, band, bg = (rec["zones"][k] for k in ("foreground", "band", "background"))
         for n, total in zip((fg, band, bg), sampled.values(), strict=True):
             assert abs(n - total / len(shards)) < 1
         # blocks: foreground | band | background
-        z = s["zone"]
+        z = flags_zone(s["flags"])
         assert (z[:fg] == ZONE_FOREGROUND).all() and (z[fg : fg + band] == ZONE_BAND).all()
         assert (z[fg + band :] == ZONE_BACKGROUND).all()
         assert len(set(s["view"].tolist())) > 1  # shuffled across images
     every = np.concatenate(shards)
-    fg = every[every["zone"] == ZONE_FOREGROUND]
+    fg = every[flags_zone(every["flags"]) == ZONE_FOREGROUND]
     keys = np.column_stack([fg["view"], fg["light"], fg["pixel"]]).astype(np.int64)
     assert len(np.unique(keys, axis=0)) == len(fg)  # no foreground ray twice (drawn without repetition)
-    assert 64 <= summary["bytes_per_ray"] < 70
+    assert 16 <= summary["bytes_per_ray"] < 17  # 16 bytes a ray + a 128-byte npy header per 256-ray shard
     n = m["normalization"]
     assert n["scale"] > 0 and len(n["centre"]) == 3
     assert json.loads(work.report("shard").read_text())["rays"] == m["rays"]
@@ -78,23 +80,33 @@ def test_round_trip_rays_rederived_from_calibration(sharded):
     split = load_split(work.split)
     train = set(split.train.frames())
     rays = np.concatenate(shards)
+    table = RayTable(m)  # the rays as the loader computes them from the manifest's camera and light tables
+    origin, direction, light_position, light_direction = (
+        x.numpy()
+        for x in table.rays(
+            torch.from_numpy(rays["view"].astype(np.int64)),
+            torch.from_numpy(rays["light"].astype(np.int64)),
+            torch.from_numpy(rays["pixel"].astype(np.int64)),
+        )
+    )
     views = [ViewId(*v.split("/")) for v in m["views"]]
     border = 0
     for v_idx in np.unique(rays["view"]):
         v = views[v_idx]
         cam = calib.views[v].camera()
-        sel = rays[rays["view"] == v_idx]
+        at = rays["view"] == v_idx
+        sel = rays[at]
         pix = sel["pixel"].astype(np.int64)
         o, d = view_rays(cam.K, cam.R, cam.t, cam.dist, pix)
-        np.testing.assert_array_equal(sel["origin"], o)
-        np.testing.assert_array_equal(sel["direction"], d)
+        np.testing.assert_array_equal(origin[at], o)
+        np.testing.assert_array_equal(direction[at], d)
         o2, d2 = pixel_rays(pix + 0.5, cam.K, cam.R, cam.t)  # the convention module, directly
-        np.testing.assert_array_equal(sel["direction"], d2.astype(np.float32))
-        np.testing.assert_array_equal(sel["origin"], o2.astype(np.float32))
+        np.testing.assert_array_equal(direction[at], d2.astype(np.float32))
+        np.testing.assert_array_equal(origin[at], o2.astype(np.float32))
         lp = calib.light_positions[v.group][sel["light"]]
-        np.testing.assert_array_equal(sel["light_position"], lp.astype(np.float32))
+        np.testing.assert_array_equal(light_position[at], lp.astype(np.float32))
         ld = calib.light_directions(v.group)[sel["light"]]
-        np.testing.assert_array_equal(sel["light_direction"], ld.astype(np.float32))
+        np.testing.assert_array_equal(light_direction[at], ld.astype(np.float32))
         import cv2
 
         mask = cv2.imread(str(work.mask(v)), cv2.IMREAD_UNCHANGED) > 0
@@ -105,13 +117,14 @@ def test_round_trip_rays_rederived_from_calibration(sharded):
             i, j = (int(x) for x in r["pixel"])
             if 0 <= i < cam.width and 0 <= j < cam.height:
                 img = read_exr(work.frame(f), channels="RGBS")
-                assert r["zone"] == zones[j, i]
+                assert flags_zone(r["flags"]) == zones[j, i]
                 want = img[j, i, :3] if mask[j, i] else np.zeros(3, np.float16)
                 np.testing.assert_array_equal(r["rgb"], want)
-                assert bool(r["saturated"]) == bool(mask[j, i] and img[j, i, 3] > 0.5)
+                assert bool(flags_saturated(r["flags"])) == bool(mask[j, i] and img[j, i, 3] > 0.5)
             else:
                 border += 1
-                assert r["zone"] == ZONE_BACKGROUND and not r["rgb"].any() and not r["saturated"]
+                assert flags_zone(r["flags"]) == ZONE_BACKGROUND and not r["rgb"].any()
+                assert not flags_saturated(r["flags"])
     assert border > 0  # the padded border outside the image is sampled
 
 
@@ -319,14 +332,14 @@ def test_default_sampling_covers_every_foreground_pixel_once(tmp_path):
         zones = sampling_zones(mask, ShardConfig().band_fraction)
         for light in np.unique(rays["light"][rays["view"] == v_idx]):
             sel = rays[(rays["view"] == v_idx) & (rays["light"] == light)]
-            fg = sel[sel["zone"] == ZONE_FOREGROUND]["pixel"]
+            fg = sel[flags_zone(sel["flags"]) == ZONE_FOREGROUND]["pixel"]
             got = np.zeros_like(mask)
             got[fg[:, 1], fg[:, 0]] = True
             assert len(fg) == mask.sum() and (got == mask).all()
-            band = sel[sel["zone"] == ZONE_BAND]["pixel"]
+            band = sel[flags_zone(sel["flags"]) == ZONE_BAND]["pixel"]
             assert (
                 len(band) == round(0.75 * mask.sum()) and (zones[band[:, 1], band[:, 0]] == ZONE_BAND).all()
             )
-            assert (sel["zone"] == ZONE_BACKGROUND).sum() == round(0.25 * mask.sum())
+            assert (flags_zone(sel["flags"]) == ZONE_BACKGROUND).sum() == round(0.25 * mask.sum())
             frames += 1
     assert frames == m["frames"]

@@ -87,7 +87,8 @@ RESUME_SAFE_KEYS = frozenset(
         "eval.images",
         "eval.chunk",
         "eval.max_images",
-        "eval.lpips_weights",
+        "eval.lpips",
+        "eval.lpips_weights",  # retired (config.RETIRED_KEYS): only an old checkpoint still holds them
         "eval.lpips_linear_weights",
         "log_every",
         "checkpoint_every",

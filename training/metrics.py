@@ -1,6 +1,7 @@
 """Image metrics, in one place: PSNR, SSIM (the field's: 11x11 Gaussian window, sigma 1.5, Wang et al. 2004,
-through scikit-image) and LPIPS (training/lpips.py, only when its backbone weights are local), scored in
-three conventions (CONVENTIONS) on the project's tonemap (lightstage.tonemap) or the paper code's.
+through scikit-image) and LPIPS (training/lpips.py: `lpips` = VGG, what the paper's code reports, and
+`lpips_alex`, the lpips package's default), scored in three conventions (CONVENTIONS) on the project's tonemap
+(lightstage.tonemap) or the paper code's.
 
 A test image's target outside its foreground mask is set to 0 before scoring (as the paper's code does and as
 the training targets are); the prediction is scored as rendered. `full` keeps every pixel of the raw target.
@@ -8,7 +9,7 @@ the training targets are); the prediction is scored as rendered. `full` keeps ev
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import numpy as np
 from skimage.metrics import structural_similarity
@@ -79,20 +80,35 @@ def convention_images(
     }
 
 
+# LPIPS metric key -> training/lpips.py net: VGG (what the paper's code reports) and AlexNet (lpips' default)
+LPIPS_NETS = {"lpips": "vgg", "lpips_alex": "alex"}
+LPIPS_KEYS = tuple(LPIPS_NETS)
+# key -> fn(pred, target in [0, 1]) -> distance, None for an image too small for the network
+LpipsFns = Mapping[str, Callable[[np.ndarray, np.ndarray], float | None]]
+
+
+def metric_names() -> tuple[str, ...]:
+    """The metrics scored in every convention: psnr, ssim and the LPIPS keys."""
+    return ("psnr", "ssim", *LPIPS_KEYS)
+
+
 def scores(
     pred: np.ndarray,
     target: np.ndarray,
     mask: np.ndarray | None,
     exposure: float,
-    lpips_fn: Callable[[np.ndarray, np.ndarray], float] | None = None,
+    lpips: LpipsFns | None = None,
     pred_full: np.ndarray | None = None,
 ) -> dict[str, float | None]:
-    """psnr/ssim/lpips with every CONVENTIONS suffix (lpips None without lpips_fn) of linear HDR images."""
+    """psnr/ssim and every LPIPS key (LPIPS_KEYS; None where `lpips` has no function for it) with every
+    CONVENTIONS suffix, of linear HDR images."""
     out: dict[str, float | None] = {}
+    fns = lpips or {}
     for suffix, (p, t) in convention_images(pred, target, mask, exposure, pred_full).items():
         out[f"psnr{suffix}"] = psnr(p, t)
         out[f"ssim{suffix}"] = ssim(p, t)
-        out[f"lpips{suffix}"] = float(lpips_fn(p, t)) if lpips_fn is not None else None
+        for key in LPIPS_KEYS:
+            out[f"{key}{suffix}"] = fns[key](p, t) if key in fns else None
     return out
 
 
@@ -101,8 +117,8 @@ def ceiling_scores(
     target: np.ndarray,
     mask: np.ndarray | None,
     exposure: float,
-    lpips_fn: Callable[[np.ndarray, np.ndarray], float] | None = None,
+    lpips: LpipsFns | None = None,
 ) -> dict[str, float | None]:
     """What a perfect prediction scores: the noise-free render of the frame, 0 outside the mask where the
     target is masked (the best a model trained on masked targets can do), the whole render in `full`."""
-    return scores(masked(clean, mask), target, mask, exposure, lpips_fn, pred_full=clean)
+    return scores(masked(clean, mask), target, mask, exposure, lpips, pred_full=clean)

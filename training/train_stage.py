@@ -58,7 +58,11 @@ def run_train(
     try:
         rank, world = distributed()
         source = ShardSource(
-            work, config.optim.batch_rays // world, seed=config.seed, workers=config.loader_workers
+            work,
+            config.optim.batch_rays // world,
+            seed=config.seed,
+            workers=config.loader_workers,
+            device=dev,
         )
         scene = source.normalization()
         tests = []

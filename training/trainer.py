@@ -67,8 +67,8 @@ def compute_stats(source: BatchSource, n_batches: int, percentile: float) -> Tra
     the loader composes them (1/2 foreground, 3/8 band, 1/8 background)."""
     rgb, fg = [], []
     for _, batch in zip(range(max(1, n_batches)), source.batches(0, 0, 1), strict=False):
-        rgb.append(batch["rgb"].float().numpy())
-        fg.append(batch["zone"].numpy() == ZONE_FOREGROUND)
+        rgb.append(batch["rgb"].float().cpu().numpy())
+        fg.append(batch["zone"].cpu().numpy() == ZONE_FOREGROUND)
     rgb_all, fg_all = np.concatenate(rgb), np.concatenate(fg)
     exposure = auto_exposure(rgb_all[fg_all] if fg_all.any() else rgb_all, percentile)
     return TrainStats(exposure=float(exposure), baseline_rgb=rgb_all.mean(0).astype(float).tolist())
@@ -79,8 +79,8 @@ def measure_light_frame(source: BatchSource, n_batches: int) -> tuple[list[float
     light (inf) when their directions cannot fix a centre (e.g. one light)."""
     pos, dirs = [], []
     for _, batch in zip(range(max(1, n_batches)), source.batches(0, 0, 1), strict=False):
-        pos.append(batch["light_positions"].double().numpy())
-        dirs.append(batch["light_directions"].double().numpy())
+        pos.append(batch["light_positions"].double().cpu().numpy())
+        dirs.append(batch["light_directions"].double().cpu().numpy())
     p, idx = np.unique(np.concatenate(pos).round(6), axis=0, return_index=True)
     try:
         centre, radius = light_frame(p, np.concatenate(dirs)[idx])

@@ -190,6 +190,21 @@ def read_mask(path: str | os.PathLike[str]) -> np.ndarray:
     return m > (127 if m.max() > 1 else 0)
 
 
+def read_flare_mask(path: str | os.PathLike[str], shape: tuple[int, int]) -> np.ndarray:
+    """A frame's flare and bulb mask (WorkDir.flare_mask) as bool (h, w): all False when the file is absent
+    (nothing of the frame is flagged)."""
+    path = Path(path)
+    if not path.is_file():
+        return np.zeros(shape, bool)
+    m = read_mask(path)
+    if m.shape != tuple(shape):
+        raise LightstageError(
+            f"{path}: flare mask is {m.shape[1]}x{m.shape[0]}, the frame {shape[1]}x{shape[0]} "
+            "(rerun `lightstage preprocess`)"
+        )
+    return m
+
+
 def read_zones(path: str | os.PathLike[str]) -> np.ndarray:
     """A zone map PNG as labels ZONE_BACKGROUND / ZONE_BAND / ZONE_FOREGROUND (raw labels or 0/128/255)."""
     from lightstage.workdir import ZONE_BACKGROUND, ZONE_BAND, ZONE_FOREGROUND

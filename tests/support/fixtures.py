@@ -106,6 +106,7 @@ def write_random_shards(root: str | Path, num_shards: int, rays_per_shard: int, 
     import json
 
     from lightstage.atomic import write_json_atomic
+    from lightstage.cameras import look_at
     from lightstage.dataset.shards import file_sha256
     from lightstage.records.shards import (
         COMPOSITION,
@@ -114,19 +115,33 @@ def write_random_shards(root: str | Path, num_shards: int, rays_per_shard: int, 
         SHARD_FORMAT_VERSION,
         ZONE_NAMES,
         ZONES,
+        pack_flags,
     )
+
+    VIEWS, LIGHTS = ("000/cam00", "000/cam01", "040/cam00", "040/cam01"), 331
+    rng = np.random.default_rng(seed)
+    cameras = []
+    for k in range(len(VIEWS)):
+        R, t = look_at(np.array([2.0 * np.cos(k), 2.0 * np.sin(k), 0.5]), np.zeros(3))
+        K = [[1800.0, 0.0, 1024.0], [0.0, 1800.0, 683.0], [0.0, 0.0, 1.0]]
+        cameras.append(
+            {"K": K, "R": R.tolist(), "t": t.tolist(), "dist": [0.0] * 5, "width": 2048, "height": 1366}
+        )
+    dirs = rng.standard_normal((LIGHTS, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    lights = {g: {"positions": (1.5 * dirs).tolist(), "directions": dirs.tolist()} for g in ("000", "040")}
 
     out = Path(root) / "shards"
     (out / "train").mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(seed)
     per = [rays_per_shard // 8 * c for c in COMPOSITION]
     records = []
     for s in range(num_shards):
         a = np.zeros(rays_per_shard, RAY_DTYPE)
-        for name in ("origin", "direction", "light_position", "light_direction"):
-            a[name] = rng.standard_normal((rays_per_shard, 3), dtype=np.float32)
         a["rgb"] = rng.random((rays_per_shard, 3), dtype=np.float32)
-        a["zone"] = np.repeat(np.array(ZONES, np.uint8), per)
+        a["flags"] = pack_flags(rng.random(rays_per_shard) < 0.02, np.repeat(np.array(ZONES, np.uint8), per))
+        a["pixel"] = rng.integers(-16, 2048, (rays_per_shard, 2))
+        a["view"] = rng.integers(0, len(VIEWS), rays_per_shard)
+        a["light"] = rng.integers(0, LIGHTS, rays_per_shard)
         path = out / "train" / f"shard_{s:05d}.npy"
         np.save(path, a)
         records.append(
@@ -146,6 +161,9 @@ def write_random_shards(root: str | Path, num_shards: int, rays_per_shard: int, 
             "rays": num_shards * rays_per_shard,
             "rays_per_shard": rays_per_shard,
             "normalization": {"centre": [0.0, 0.0, 0.0], "scale": 1.0},
+            "views": list(VIEWS),
+            "cameras": cameras,
+            "lights": lights,
             "shards": records,
             "note": json.dumps({"synthetic": True}),
         },
