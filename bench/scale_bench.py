@@ -38,11 +38,15 @@ def vm_hwm_mb(pid: int) -> float:
 
 
 def scheduler_counts(client) -> dict[str, list[float]]:
-    """{task prefix: [tasks seen, summed compute seconds]} from the scheduler."""
+    """{task prefix: [tasks finished or failed, summed compute seconds]} from the scheduler (its per-prefix
+    counts of transitions into each state accumulate: a task enters `memory` or `erred` once per run of it)."""
 
     def counts(dask_scheduler) -> dict:
         return {
-            name: [sum(tp.state_counts.values()), float(tp.all_durations.get("compute", 0.0))]
+            name: [
+                tp.state_counts.get("memory", 0) + tp.state_counts.get("erred", 0),
+                float(tp.all_durations.get("compute", 0.0)),
+            ]
             for name, tp in dask_scheduler.task_prefixes.items()
         }
 
