@@ -80,12 +80,23 @@ def run_stages(capture: Path, work: Path, address: str, workers: int) -> list[di
             )
             wall = time.perf_counter() - t0
             after = scheduler_counts(stats)
-            tasks = sum(v[0] - before.get(k, [0, 0])[0] for k, v in after.items())
+            split = {k.rsplit("-", 2)[0]: 0 for k in after}
+            for k, v in after.items():
+                split[k.rsplit("-", 2)[0]] += v[0] - before.get(k, [0, 0])[0]
+            by_prefix = {k: n for k, n in split.items() if n}
+            tasks = sum(by_prefix.values())
             busy = sum(v[1] - before.get(k, [0, 0])[1] for k, v in after.items())
             if result.status == "failed":
                 raise SystemExit(f"{stage} failed: {result.reason}")
             rows.append(
-                {"stage": stage, "status": result.status, "wall_s": wall, "work_s": busy, "tasks": tasks}
+                {
+                    "stage": stage,
+                    "status": result.status,
+                    "wall_s": wall,
+                    "work_s": busy,
+                    "tasks": tasks,
+                    "tasks_by_function": by_prefix,
+                }
             )
             print(
                 f"  {stage}: {wall:.1f} s wall, {busy:.1f} s work, {tasks} tasks", file=sys.stderr, flush=True
