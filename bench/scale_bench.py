@@ -207,11 +207,16 @@ def kill_and_resume(capture: Path, args, env: dict[str, str], logs: Path, refere
         second = subprocess.run([*cmd, "--scheduler", address], env=env, capture_output=True, text=True)
     finally:
         cluster.stop()
+    mine, theirs = [], []
+    tree_hash(work, listing=mine)
+    tree_hash(args.out / "work", listing=theirs)
+    differ = sorted({line.split("  ", 1)[1] for line in set(mine) ^ set(theirs)})
     return {
         "killed_at_frames": killed_at,
         "first_exit": first,
         "rerun_exit": second.returncode,
         "identical_to_uninterrupted": second.returncode == 0 and tree_hash(work) == reference,
+        "differing_files": differ,
     }
 
 
