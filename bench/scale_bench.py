@@ -10,6 +10,7 @@ the scheduler once N processed frames exist, restarts everything, reruns, and co
 uninterrupted run's (bench/tree_hash.py). Results: docs/benchmarks.md.
 
     python bench/scale_bench.py OUT [--groups 0-8] [--lights 42,297] [--workers 2] [--kill-after 200] [--json F]
+                                    [--config CONFIG.yaml]
 """
 
 from __future__ import annotations
@@ -59,7 +60,7 @@ def frames_of(work: Path) -> int:
     return sum(1 for _ in frames.rglob("*.exr")) if frames.is_dir() else 0
 
 
-def run_stages(capture: Path, work: Path, address: str, workers: int) -> list[dict]:
+def run_stages(capture: Path, work: Path, address: str, workers: int, config_path: str) -> list[dict]:
     """Each batch stage alone (`--only`) on the cluster at `address`; per-stage figures."""
     from distributed import Client
 
@@ -69,7 +70,7 @@ def run_stages(capture: Path, work: Path, address: str, workers: int) -> list[di
     from lightstage.pipelines.stages import BATCH_STAGES
     from lightstage.workdir import WorkDir
 
-    config = load_pipeline_config("default").with_cluster(scheduler=address)
+    config = load_pipeline_config(config_path).with_cluster(scheduler=address)
     rows = []
     with Client(address, timeout="30s") as stats, open_executor(config.cluster, verbose=False) as executor:
         for stage in BATCH_STAGES:
@@ -125,6 +126,11 @@ def main() -> None:
         "--kill-after", type=int, default=0, help="kill the scheduler at N processed frames, resume"
     )
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument(
+        "--config",
+        default="default",
+        help="pipeline config (calibrate: {num_threads: 1} makes SfM, and so the whole tree, run-to-run identical)",
+    )
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     capture = args.out / "capture"
@@ -142,7 +148,7 @@ def main() -> None:
     cluster = DaskProcesses(logs, env, args.workers)
     try:
         address = cluster.start()
-        rows = run_stages(capture, work, address, args.workers)
+        rows = run_stages(capture, work, address, args.workers, args.config)
         peaks = {
             "scheduler": vm_hwm_mb(cluster.scheduler.pid),
             "workers": [vm_hwm_mb(p.pid) for p in cluster.procs[1:]],
@@ -187,7 +193,7 @@ def kill_and_resume(capture: Path, args, env: dict[str, str], logs: Path, refere
 
     work = args.out / "work-killed"
     cmd = [sys.executable, "-m", "lightstage.pipelines.cli", "run", str(capture), "--work", str(work)]
-    cmd += ["--to", "shard", "--quiet"]
+    cmd += ["--to", "shard", "--quiet"] + (["--config", args.config] if args.config != "default" else [])
     cluster = DaskProcesses(logs, env, args.workers)
     try:
         address = cluster.start()
