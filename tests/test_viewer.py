@@ -284,3 +284,44 @@ def test_capture_lights_picks_a_spread_subset_and_oversized_bases_are_refused(ca
     assert manifest["sets"][0]["views"][0]["coefficients"].__len__() % 5 == 0
     with pytest.raises(LightstageError, match="GiB per view"):
         check_basis_size(331, 2048, 1366, "view 000/cam00")
+
+
+def test_views_load_progressively(page):
+    """After the first view is drawn the page fetches every other view in the background and keeps it."""
+    page.wait_for("lightstage.prefetched", 60)
+    assert page.evaluate("[lightstage.loaded, lightstage.total]") == [2, 2]
+    assert page.evaluate("lightstage.prefetchFailed") == []
+    assert page.evaluate("lightstage.firstDrawMs") > 0
+    assert "views loaded: 2/2" in page.evaluate("document.getElementById('loading').textContent")
+
+
+def test_first_view_shows_alone(capture_bundle, tmp_path):
+    """A bundle holding only the manifest, the page and the first view's file: the page draws the first view;
+    the missing views are reported as not loaded, not as a broken page."""
+    import shutil
+
+    from support.browser import Chromium, find_chromium
+
+    from lightstage.viewer.serve import make_server
+
+    exe = find_chromium()
+    if exe is None:
+        pytest.skip("no Chromium-family browser installed (apt-get install chromium; .ci/run installs it)")
+    site = tmp_path / "site"
+    shutil.copytree(capture_bundle, site)
+    views = json.loads((site / "manifest.json").read_text())["sets"][0]["views"]
+    for view in views[1:]:
+        (site / view["file"]).unlink()
+    server = make_server(site, 0)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        with Chromium(exe) as browser:
+            p = browser.open(f"http://127.0.0.1:{server.server_address[1]}/")
+            p.wait_for("window.lightstage && (window.lightstage.prefetched || window.lightstage.error)", 120)
+            assert p.evaluate("lightstage.error") is None
+            assert p.evaluate("[lightstage.drawn >= 1, lightstage.loaded]") == [True, 1]
+            assert p.evaluate("lightstage.prefetchFailed") == [views[1]["file"]]
+            assert "1 failed" in p.evaluate("document.getElementById('loading').textContent")
+    finally:
+        server.shutdown()
+        server.server_close()

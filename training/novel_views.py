@@ -5,6 +5,7 @@ as EXR frames, orbits around the scene centre as an H.264 MP4 (PyAV) and a PNG s
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -43,10 +44,73 @@ class RenderConfig(ModelViewOptions):
         return load(cls, d)
 
 
-def render_image(model: RelightableModel, camera: PinholeCamera, light: LightQuery) -> np.ndarray:
-    """(H, W, 3) float32 HDR render of one camera under one light."""
-    img = np.asarray(model.image_from_camera(camera, np.asarray(light.direction, np.float32)), np.float32)
-    return img * np.float32(light.scale)
+BAND_RAYS = 65536  # rays made and rendered at a time by render_bands
+
+
+def band_rays(camera: PinholeCamera, y0: int, y1: int) -> tuple[np.ndarray, np.ndarray]:
+    """World rays ((y1 - y0) * W, 3) through the pixel centres of rows y0..y1 of `camera` (as camera_rays)."""
+    from lightstage.cameras import pixel_centers, pixel_rays, undistort_pixels
+
+    uv = pixel_centers(camera.width, y1 - y0) + np.array([0.0, y0])
+    uv = undistort_pixels(uv, camera.K, camera.dist)
+    return pixel_rays(uv, camera.K, camera.R, camera.t)
+
+
+def render_bands(
+    model: RelightableModel,
+    camera: PinholeCamera,
+    direction: np.ndarray,
+    on_rays: Callable[[int], None] | None = None,
+    rays_per_band: int = BAND_RAYS,
+) -> np.ndarray:
+    """(H, W, 3) float32 HDR image of `camera` under the unit light `direction`, a band of rows at a time: each
+    band's rays are made, rendered and written into the image, so the memory beyond the image is one band's
+    (the rays of a whole 2048 x 1366 view are 4 x 67 MB), and `on_rays(n)` reports each band's n rays."""
+    import torch
+
+    h, w = camera.height, camera.width
+    rows = max(1, rays_per_band // w)
+    out = np.empty((h, w, 3), np.float32)
+    light = torch.from_numpy(np.asarray(direction, np.float32).reshape(1, 3))
+    with torch.no_grad():
+        for y0 in range(0, h, rows):
+            y1 = min(h, y0 + rows)
+            o, d = band_rays(camera, y0, y1)
+            o_t, d_t = torch.from_numpy(o.astype(np.float32)), torch.from_numpy(d.astype(np.float32))
+            rgb = model.render_rays(o_t, d_t, light.expand(len(o_t), 3))
+            out[y0:y1] = torch.as_tensor(rgb).detach().float().cpu().numpy().reshape(y1 - y0, w, 3)
+            if on_rays is not None:
+                on_rays(len(o_t))
+    return out
+
+
+def render_image(
+    model: RelightableModel,
+    camera: PinholeCamera,
+    light: LightQuery,
+    on_rays: Callable[[int], None] | None = None,
+) -> np.ndarray:
+    """(H, W, 3) float32 HDR render of one camera under one light (in bands of rows, see render_bands)."""
+    return render_bands(model, camera, light.direction, on_rays) * np.float32(light.scale)
+
+
+class ImageFiles(Sequence):
+    """Images kept on disk and read back when used (a video's frames): an orbit's memory stays one frame."""
+
+    def __init__(self, paths: list[Path]):
+        self.paths = list(paths)
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def __getitem__(self, i: int) -> np.ndarray:  # type: ignore[override] - integers only
+        """The uint8 RGB image of file i."""
+        import cv2
+
+        img = cv2.imread(str(self.paths[i]), cv2.IMREAD_COLOR)
+        if img is None:
+            raise LightstageError(f"{self.paths[i]}: cannot read the frame back")
+        return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
 def run_render(
@@ -82,9 +146,17 @@ def run_render(
     # the capture's exposure (stored with the checkpoint) when the model has one, so renders match previews
     exposure = config.exposure if config.exposure is not None else getattr(model, "exposure", None)
     outputs: list[str] = []
-    for k in tqdm(range(n), desc="render", disable=not progress or n == 1):
+    bar = tqdm(
+        total=n * camera.width * camera.height,
+        desc=f"render ({n} frame{'s' * (n > 1)})",
+        unit="ray",
+        unit_scale=True,
+        disable=not progress,
+        leave=False,
+    )
+    for k in range(n):
         cam = rotate_camera_about_z(camera, 360.0 * k / n, centre) if config.orbit else camera
-        img = render_image(model, cam, light)
+        img = render_image(model, cam, light, bar.update)
         if exposure is None:
             exposure = auto_exposure(img, 99.0)
         stem = f"{named.name}_{light.name}" if not config.orbit else f"frame_{k:04d}"
@@ -94,7 +166,8 @@ def run_render(
         write_image(exr.with_suffix(".png"), png)
         outputs.append(str(exr))
         if config.orbit:
-            frames.append(png)
+            frames.append(exr.with_suffix(".png"))
+    bar.close()
     summary: dict[str, Any] = {
         "camera": config.camera,
         "light": config.light,
@@ -107,8 +180,8 @@ def run_render(
         "outputs": outputs[:10],
     }
     if config.orbit:
-        summary["video"] = str(write_video(out / "orbit.mp4", frames, config.fps))
-        strip = make_strip(frames)
+        summary["video"] = str(write_video(out / "orbit.mp4", ImageFiles(frames), config.fps))
+        strip = make_strip(ImageFiles(frames))
         write_image(out / "orbit_strip.png", strip)
         summary["strip"] = str(out / "orbit_strip.png")
     summary["seconds"] = round(time.perf_counter() - t0, 3)
@@ -134,7 +207,7 @@ def h264_encoder() -> str:
     raise LightstageError(f"PyAV {av.__version__} has no H.264 encoder (tried {', '.join(H264_ENCODERS)})")
 
 
-def write_video(path: Path, frames: list[np.ndarray], fps: float, crf: int = 18) -> Path:
+def write_video(path: Path, frames: Sequence[np.ndarray], fps: float, crf: int = 18) -> Path:
     """Write uint8 RGB frames as an H.264 MP4 (PyAV: yuv420p, `crf` quality, moov atom first so browsers
     start playing at once) that browsers, GitHub and slide tools play; odd sizes are padded to even."""
     from fractions import Fraction
@@ -161,7 +234,7 @@ def write_video(path: Path, frames: list[np.ndarray], fps: float, crf: int = 18)
     return path
 
 
-def make_strip(frames: list[np.ndarray], count: int = 8, height: int = 160) -> np.ndarray:
+def make_strip(frames: Sequence[np.ndarray], count: int = 8, height: int = 160) -> np.ndarray:
     """A horizontal strip of up to `count` evenly spaced frames, each resized to `height` pixels."""
     import cv2
 

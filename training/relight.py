@@ -22,16 +22,21 @@ from lightstage.training.view_specs import ModelViewOptions, write_hdr
 from lightstage.workdir import WorkDir
 
 
-def olat_images(model: RelightableModel, camera, directions: np.ndarray, batch_rays: int = 65536):
+def olat_images(
+    model: RelightableModel, camera, directions: np.ndarray, batch_rays: int = 65536, on_rays=None
+):
     """Yield (H, W, 3) float32 white-light OLAT images for each light direction. Small images are batched:
-    several lights share one `render_rays` call (rays repeated per light); large ones use image_from_camera."""
+    several lights share one `render_rays` call (rays repeated per light); large ones are rendered in bands of
+    rows (novel_views.render_bands: memory one image plus one band). `on_rays(n)` reports rays rendered."""
     import torch
+
+    from lightstage.training.novel_views import render_bands
 
     h, w = camera.height, camera.width
     per_call = max(1, batch_rays // (h * w))
     if per_call == 1:
         for d in directions:
-            yield np.asarray(model.image_from_camera(camera, np.asarray(d, np.float32)), np.float32)
+            yield render_bands(model, camera, d, on_rays, batch_rays)
         return
     o, r = camera_rays(camera)
     o_t = torch.from_numpy(o.astype(np.float32))
@@ -41,6 +46,8 @@ def olat_images(model: RelightableModel, camera, directions: np.ndarray, batch_r
         light = torch.from_numpy(np.repeat(group, h * w, axis=0))
         rgb = model.render_rays(o_t.repeat(len(group), 1), r_t.repeat(len(group), 1), light)
         rgb = torch.as_tensor(rgb).detach().float().cpu().numpy().reshape(len(group), h, w, 3)
+        if on_rays is not None:
+            on_rays(len(group) * h * w)
         yield from rgb
 
 
@@ -52,20 +59,24 @@ def relight_image(
     progress: bool = False,
     batch_rays: int = 65536,
 ) -> np.ndarray:
-    """(H, W, 3) float32 HDR: sum over lights of OLAT(omega_k) * rgb_k * olat_factor (zero lights skipped)."""
+    """(H, W, 3) float32 HDR: sum over lights of OLAT(omega_k) * rgb_k * olat_factor (zero lights skipped).
+    Progress counts rays (lights x pixels), so a large image shows it within each light."""
     from tqdm import tqdm
 
     active = lights.nonzero()
     acc = np.zeros((camera.height, camera.width, 3), np.float64)
-    images = olat_images(model, camera, active.directions, batch_rays)
-    for img, rgb in tqdm(
-        zip(images, active.rgb, strict=True),
-        total=len(active),
-        desc="relight",
+    bar = tqdm(
+        total=len(active) * camera.height * camera.width,
+        desc=f"relight ({len(active)} lights)",
+        unit="ray",
+        unit_scale=True,
         disable=not progress,
         leave=False,
-    ):
+    )
+    images = olat_images(model, camera, active.directions, batch_rays, bar.update)
+    for img, rgb in zip(images, active.rgb, strict=True):
         acc += img.astype(np.float64) * (np.asarray(rgb, np.float64) * olat_factor)
+    bar.close()
     return acc.astype(np.float32)
 
 
@@ -249,7 +260,7 @@ def rotate_sweep(
 
     from lightstage.frames import write_image
     from lightstage.tonemap import auto_exposure, tonemap_u8
-    from lightstage.training.novel_views import make_strip, write_video
+    from lightstage.training.novel_views import ImageFiles, make_strip, write_video
 
     if frames < 1:
         raise LightstageError(f"--rotate-sweep must be >= 1 frames, got {frames}")
@@ -262,10 +273,10 @@ def rotate_sweep(
         write_hdr(
             out / "sweep" / f"frame_{k:04d}.exr", img, {"lightstage_rotate_deg": f"{turned.rotate_deg:.6f}"}
         )
-        pngs.append(tonemap_u8(img, exposure))
-        write_image(out / "sweep" / f"frame_{k:04d}.png", pngs[-1])
-    video = write_video(out / "rotate_sweep.mp4", pngs, fps)
-    write_image(out / "rotate_sweep_strip.png", make_strip(pngs))
+        pngs.append(out / "sweep" / f"frame_{k:04d}.png")
+        write_image(pngs[-1], tonemap_u8(img, exposure))
+    video = write_video(out / "rotate_sweep.mp4", ImageFiles(pngs), fps)
+    write_image(out / "rotate_sweep_strip.png", make_strip(ImageFiles(pngs)))
     return {"frames": frames, "lights": str(count), "video": str(video), "fps": fps, "exposure": exposure}
 
 

@@ -23,10 +23,11 @@ from typing import Any
 
 from lightstage.config import load
 from lightstage.errors import LightstageError
+from lightstage.viewer.display import Budget, reserved_bytes
 from lightstage.viewer.sets import ROTATION_STEPS, capture_set, model_set, write_envmaps
 from lightstage.workdir import WorkDir
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: display size, byte budget, progressive loading
 STATIC = Path(__file__).resolve().parent / "static"
 STATIC_FILES = ("index.html", "viewer.js", "viewer.css")
 SOURCES = ("auto", "capture", "model", "both")
@@ -52,6 +53,8 @@ class ViewerConfig:
     device: str = "cpu"
     light_distance: float | None = None
     light_intensity: float = 1.0
+    display_size: int = 512  # longest side of every view in pixels (area-downscaled; 0: as processed)
+    bundle_mb: float = 300.0  # the bundle's bound in MB (1e6 bytes): each view's components get a share of it
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> ViewerConfig:
@@ -65,8 +68,10 @@ class ViewerConfig:
             raise LightstageError(f"--tolerance must be in [0, 1), got {self.tolerance}")
         if self.basis_lights < 1 or self.max_components < 1 or self.orbit_views < 1:
             raise LightstageError("--basis-lights, --max-components and --orbit-views must be >= 1")
-        if self.views < 0 or self.novel < 0 or self.capture_lights < 0:
-            raise LightstageError("--views, --novel and --capture-lights must be >= 0")
+        if self.views < 0 or self.novel < 0 or self.capture_lights < 0 or self.display_size < 0:
+            raise LightstageError("--views, --novel, --capture-lights and --display-size must be >= 0")
+        if not self.bundle_mb > 0:
+            raise LightstageError(f"--bundle-mb must be > 0, got {self.bundle_mb}")
 
 
 def build_key(work: WorkDir, config: ViewerConfig) -> dict[str, Any]:
@@ -179,10 +184,11 @@ def _remove_stale(bundle: Path) -> None:
 def _build_into(tmp, bundle, work, config, scene, sources, envmaps, progress, model, t_wall, t_cpu):
     """The body of `build_viewer`: the sets, envmaps and static files into `tmp`, then moved to `bundle`."""
     sets = []
+    budget = plan_budget(work, scene, config, sources, envmaps)
     if "capture" in sources:
-        sets.append(capture_set(work, scene, config, tmp, progress))
+        sets.append(capture_set(work, scene, config, tmp, progress, budget))
     if "model" in sources:
-        sets.append(model_set(work, scene, config, tmp, progress, model))
+        sets.append(model_set(work, scene, config, tmp, progress, budget, model))
     _link_ab(sets)
     env_entries = write_envmaps(envmaps, sets, scene.olat_factor, tmp, progress)
     for s in sets:
@@ -211,6 +217,45 @@ def _build_into(tmp, bundle, work, config, scene, sources, envmaps, progress, mo
     (tmp / "manifest.json").write_text(json.dumps(manifest))
     _replace(tmp, bundle)
     return manifest
+
+
+def ring_lights(work: WorkDir, scene, config: ViewerConfig, sources: list[str]) -> list[list[int]]:
+    """Per set to build, the basis-light count of each of its views (the plan of the byte budget)."""
+    from lightstage.ids import ViewId
+    from lightstage.viewer.sources import captured_lights, ring_camera, ring_groups
+
+    calib = scene.calibration
+    groups = []
+    if calib is not None:
+        camera = ring_camera(calib, config.camera)
+        groups = ring_groups(calib, camera, config.views)
+    out = []
+    if "capture" in sources:
+        cap = config.capture_lights or None
+        out.append([min(len(captured_lights(work, ViewId(g, camera))), cap or 1 << 30) for g in groups])
+    if "model" in sources:
+        count = len(groups) * (1 + config.novel) if calib is not None else config.orbit_views
+        out.append([config.basis_lights] * count)
+    return out
+
+
+def plan_budget(work: WorkDir, scene, config: ViewerConfig, sources: list[str], envmaps) -> Budget:
+    """The bytes the views' components may take: `config.bundle_mb` less an upper bound of everything else."""
+    lights = ring_lights(work, scene, config, sources)
+    views = [n for s in lights for n in s]
+    bases = (lights[0] if "capture" in sources else []) + (
+        [config.basis_lights] if "model" in sources else []
+    )
+    env_pixels = max(e.width * e.height for _, e in envmaps)
+    static = sum((STATIC / f).stat().st_size for f in STATIC_FILES)
+    reserve = reserved_bytes(static, views, bases, len(envmaps), env_pixels, config.max_components)
+    total = int(config.bundle_mb * 1e6)
+    if total <= reserve:
+        raise LightstageError(
+            f"--bundle-mb {config.bundle_mb:g}: the manifest and envmap tables alone need {reserve / 1e6:.1f} "
+            "MB; raise --bundle-mb or use fewer --capture-lights"
+        )
+    return Budget(total - reserve, len(views))
 
 
 def _link_ab(sets: list[dict[str, Any]]) -> None:

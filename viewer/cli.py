@@ -45,6 +45,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=[],
         help="lat-long HDR map to offer (repeatable; a sky is built in)",
     )
+    p.add_argument(
+        "--display-size",
+        type=int,
+        default=512,
+        help="longest side of the views in pixels (frames and renders area-downscaled; 0: as processed)",
+    )
+    p.add_argument(
+        "--bundle-mb",
+        type=float,
+        default=300.0,
+        help="bound of the bundle in MB: each view's basis components get a share of it",
+    )
     p.add_argument("--envmap-resolution", default="32x16", help="envmap resampling WIDTHxHEIGHT")
     p.add_argument("--orbit-views", type=int, default=12, help="model views without a calibration (an orbit)")
     p.add_argument("--orbit-size", default="256x192", help="WIDTHxHEIGHT of those orbit views")
@@ -86,6 +98,8 @@ def _view(args: argparse.Namespace) -> int:
         orbit_size=args.orbit_size,
         checkpoint=args.checkpoint,
         device=device,
+        display_size=args.display_size,
+        bundle_mb=args.bundle_mb,
     )
     for path in config.envmaps:
         if not Path(path).is_file():
@@ -127,7 +141,15 @@ def _summary(bundle, manifest) -> None:
     sets = ", ".join(
         f"{s['source']} ({len(s['views'])} views, {s['basis_lights']} lights)" for s in manifest["sets"]
     )
+    tolerance = build["key"]["config"]["tolerance"]
+    over = sum(v["relative_error"] > tolerance for s in manifest["sets"] for v in s["views"])
+    note = (
+        f"; {over} view(s) above --tolerance {tolerance:g} (their components are capped by --bundle-mb or "
+        "--max-components)"
+        if over
+        else ""
+    )
     print(
         f"lightstage view: wrote {bundle}: {sets}; {build['bytes'] / 1e6:.1f} MB, built in "
-        f"{build['wall_seconds']:.0f} s ({build['cpu_seconds']:.0f} CPU-s)"
+        f"{build['wall_seconds']:.0f} s ({build['cpu_seconds']:.0f} CPU-s){note}"
     )

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lightstage.errors import LightstageError
+from lightstage.viewer.display import component_cap
 
 
 @dataclass(frozen=True)
@@ -71,11 +72,16 @@ def rank_for(singular_values: np.ndarray, tolerance: float) -> int:
 
 
 def compress_basis(
-    images: np.ndarray, tolerance: float = 0.02, max_components: int = 64, crop: bool = True
+    images: np.ndarray,
+    tolerance: float = 0.02,
+    max_components: int = 64,
+    crop: bool = True,
+    max_bytes: int | None = None,
 ) -> CompressedBasis:
     """Compress (L, H, W, 3) linear HDR basis images to the fewest SVD components meeting `tolerance` (relative
     Frobenius error, half rounding included; more are added when rounding pushes it over), at most
-    `max_components` (then the error is what that many give)."""
+    `max_components` and at most `max_bytes` of half-float components of the crop (then the error is what that
+    many give)."""
     imgs = np.asarray(images, np.float32)
     if imgs.ndim != 4 or imgs.shape[-1] != 3 or len(imgs) == 0:
         raise LightstageError(f"basis images must be (L, H, W, 3), got {imgs.shape}")
@@ -87,6 +93,8 @@ def compress_basis(
     norm = float(np.linalg.norm(m))
     s, vecs = _singular(m)
     limit = min(max_components, int(np.count_nonzero(s > s[0] * 1e-7)) if s[0] > 0 else 1)
+    if max_bytes is not None:
+        limit = min(limit, component_cap(max_bytes, w, h, f"a {W}x{H} view"))
     k = min(rank_for(s, tolerance), limit)
     while True:
         comp, coef, err = _fit(m, (vecs[:, :k].T @ m) / np.maximum(s[:k, None], 1e-300), norm)

@@ -3,6 +3,7 @@ envmaps' weight tables. Each writes its binary files into the bundle folder and 
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -10,6 +11,7 @@ import numpy as np
 
 from lightstage.training.light_basis import LightBasis
 from lightstage.viewer.compress import CompressedBasis, compress_basis
+from lightstage.viewer.display import Budget, display_camera
 from lightstage.viewer.sources import RingView
 
 ROTATION_STEPS = 360  # rows of an envmap weight table: one per degree
@@ -66,9 +68,9 @@ def _exposure(comp: CompressedBasis, weights: np.ndarray) -> float:
     return float(auto_exposure(comp.reconstruct(weights), 99.0))
 
 
-def capture_set(work, scene, config, bundle: Path, progress: bool) -> dict[str, Any]:
-    """The captured OLAT frames of the ring's calibrated views, compressed per view; one light basis per group
-    (the lights turn with the rig)."""
+def capture_set(work, scene, config, bundle: Path, progress: bool, budget: Budget) -> dict[str, Any]:
+    """The captured OLAT frames of the ring's calibrated views at the display size, compressed per view within
+    the view's share of the byte `budget`; one light basis per group (the lights turn with the rig)."""
     from tqdm import tqdm
 
     from lightstage.viewer.sources import calibrated_ring, capture_basis, ring_camera, ring_groups
@@ -81,13 +83,19 @@ def capture_set(work, scene, config, bundle: Path, progress: bool) -> dict[str, 
     entries: list[dict[str, Any]] = []
     views, first = [], None
     for rv in tqdm(ring, desc="viewer: capture basis", unit="view", disable=not progress, leave=False):
-        dirs, frames, lights = capture_basis(work, calib, rv.view, config.capture_lights or None)
+        dirs, frames, lights = capture_basis(
+            work, calib, rv.view, config.capture_lights or None, display=config.display_size
+        )
         key = (rv.view.group, tuple(lights))
         if key not in keys:
             keys.append(key)
             bases.append(LightBasis.of(dirs))
             entries.append(basis_entry(bases[-1], group=rv.view.group, light_indices=lights))
-        comp = compress_basis(frames, config.tolerance, config.max_components, crop=False)
+        comp = compress_basis(
+            frames, config.tolerance, config.max_components, crop=False, max_bytes=budget.share()
+        )
+        budget.spend(comp.components.nbytes)
+        del frames
         file = f"data/capture/{rv.name}.bin"
         _write(bundle / file, comp.components)
         views.append(view_entry(rv, comp, keys.index(key), file))
@@ -105,9 +113,12 @@ def capture_set(work, scene, config, bundle: Path, progress: bool) -> dict[str, 
     }
 
 
-def model_set(work, scene, config, bundle: Path, progress: bool, model: Any = None) -> dict[str, Any]:
+def model_set(
+    work, scene, config, bundle: Path, progress: bool, budget: Budget, model: Any = None
+) -> dict[str, Any]:
     """A trained model's OLAT renders under `config.basis_lights` stage lights for the ring (calibrated views
-    plus novel ones, or an orbit without a calibration), one density pass per view, compressed per view."""
+    plus novel ones, or an orbit without a calibration) at the display size, one density pass per view,
+    compressed per view within the view's share of the byte `budget`."""
     from tqdm import tqdm
 
     from lightstage.training.envmap import parse_resolution
@@ -142,6 +153,7 @@ def model_set(work, scene, config, bundle: Path, progress: bool, model: Any = No
     )
     bar.bar_format = "{l_bar}{bar}| {n:.1f}/{total:.0f} views [{elapsed}<{remaining}]"
     for rv in ring:
+        rv = replace(rv, camera=display_camera(rv.camera, config.display_size))
         rays, done = rv.camera.width * rv.camera.height, [0]
 
         def tick(n: int, rays=rays, done=done) -> None:
@@ -150,7 +162,11 @@ def model_set(work, scene, config, bundle: Path, progress: bool, model: Any = No
 
         check_basis_size(len(basis), rv.camera.width, rv.camera.height, f"view {rv.label}")
         images = render_olat_basis(model, rv.camera, basis.directions, on_chunk=tick)
-        comp = compress_basis(images, config.tolerance, config.max_components, crop=True)
+        comp = compress_basis(
+            images, config.tolerance, config.max_components, crop=True, max_bytes=budget.share()
+        )
+        budget.spend(comp.components.nbytes)
+        del images
         file = f"data/model/{rv.name}.bin"
         _write(bundle / file, comp.components)
         views.append(view_entry(rv, comp, 0, file))

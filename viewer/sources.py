@@ -135,7 +135,8 @@ def check_basis_size(count: int, width: int, height: int, what: str) -> None:
     if need > MAX_BASIS_BYTES:
         raise LightstageError(
             f"{what}: {count} basis images of {width}x{height} need {need / 2**30:.1f} GiB per view "
-            f"(limit {MAX_BASIS_BYTES / 2**30:.0f} GiB); use fewer --basis-lights"
+            f"(limit {MAX_BASIS_BYTES / 2**30:.0f} GiB); use fewer --basis-lights or --capture-lights, or a "
+            "smaller --display-size"
         )
 
 
@@ -145,12 +146,15 @@ def capture_basis(
     view: ViewId,
     max_lights: int | None = None,
     progress: Callable[[int], None] | None = None,
+    display: int = 0,
 ) -> tuple[np.ndarray, np.ndarray, list[int]]:
     """(directions (L, 3), frames (L, H, W, 3) float32 linear HDR, light indices) of one calibrated view's
-    processed OLAT frames; the directions are the calibrated lights of the view's group. With more frames than
+    processed OLAT frames, each area-downscaled as it is read to the `display` size (longest side; 0: as
+    processed); the directions are the calibrated lights of the view's group. With more frames than
     `max_lights`, that many lights spread over the group's (farthest-point sampling)."""
     from lightstage.records.processed import read_processed
     from lightstage.training.light_basis import farthest_points
+    from lightstage.viewer.display import display_size, downscale
 
     lights = captured_lights(work, view)
     if not lights:
@@ -166,10 +170,11 @@ def capture_basis(
         picked = farthest_points(np.asarray(dirs, np.float64)[lights], max_lights)
         lights = sorted(lights[i] for i in picked)
     cam = calibration.views[view].camera()
-    check_basis_size(len(lights), cam.width, cam.height, f"view {view}")
-    frames = []
+    w, h = display_size(cam.width, cam.height, display)
+    check_basis_size(len(lights), w, h, f"view {view}")
+    frames = np.empty((len(lights), h, w, 3), np.float32)
     for i, light in enumerate(lights):
-        frames.append(read_processed(work.frame(FrameId(view.group, view.camera, light)))[0])
+        frames[i] = downscale(read_processed(work.frame(FrameId(view.group, view.camera, light)))[0], w, h)
         if progress is not None:
             progress(i + 1)
-    return np.asarray(dirs, np.float64)[lights], np.stack(frames), lights
+    return np.asarray(dirs, np.float64)[lights], frames, lights

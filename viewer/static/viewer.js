@@ -161,16 +161,47 @@ void main() {
   const toAzel = (d) => [Math.atan2(d[1], d[0]) * 180 / Math.PI, Math.asin(Math.max(-1, Math.min(1, d[2]))) * 180 / Math.PI];
 
   // ---- data ----------------------------------------------------------------------------------------------
+  // Progressive loading: the first view's file is fetched first and drawn; then every other view's file is
+  // fetched in the background (nearest views of the shown set first) and kept, so switching views needs no
+  // network. A view whose file failed is fetched again when it is shown.
   const textures = new Map();  // file -> texture (a few kept)
   const tables = new Map();  // file -> Float32Array (360 * L * 3)
+  const buffers = new Map();  // file -> Promise<ArrayBuffer> of the view's components
+  const loaded = new Set();
+  const viewFiles = [...new Set(M.sets.flatMap((s) => s.views.map((v) => v.file)))];
+  Object.assign(api, { loaded: 0, total: viewFiles.length, prefetched: false, prefetchFailed: [], firstDrawMs: null });
   async function fetchBinary(file) {
     const r = await fetch(file);
     if (!r.ok) throw new Error(`${file}: HTTP ${r.status}`);
     return r.arrayBuffer();
   }
+  function showLoading() {
+    $("loading").textContent = `views loaded: ${loaded.size}/${viewFiles.length}` +
+      (api.prefetchFailed.length ? ` (${api.prefetchFailed.length} failed, retried when shown)` : "");
+  }
+  function loadView(file) {
+    if (!buffers.has(file)) {
+      const p = fetchBinary(file);
+      buffers.set(file, p);
+      p.then(() => { loaded.add(file); api.loaded = loaded.size; showLoading(); }, () => buffers.delete(file));
+    }
+    return buffers.get(file);
+  }
+  async function prefetch() {
+    const order = [];
+    for (const si of [S.set, ...M.sets.keys()].filter((v, i, a) => a.indexOf(v) === i)) {
+      const views = M.sets[si].views, n = views.length, at = si === S.set ? S.view : 0;
+      const ring = (i) => Math.min(Math.abs(i - at), n - Math.abs(i - at));
+      order.push(...[...views.keys()].sort((a, b) => ring(a) - ring(b) || a - b).map((i) => views[i].file));
+    }
+    for (const file of order) {
+      try { await loadView(file); } catch (e) { api.prefetchFailed.push(file); showLoading(); }
+    }
+    api.prefetched = true;
+  }
   async function viewTexture(view) {
     if (textures.has(view.file)) return textures.get(view.file);
-    const data = new Uint16Array(await fetchBinary(view.file));
+    const data = new Uint16Array(await loadView(view.file));
     const [, , w, h] = view.crop;
     const tex = gl.createTexture();
     gl.bindTexture(gl.TEXTURE_2D_ARRAY, tex);
@@ -376,6 +407,7 @@ void main() {
       showInfo(view, note, exp);
       drawLightmap();
       api.drawn = ticket;
+      if (api.firstDrawMs === null) api.firstDrawMs = performance.now();
     } catch (e) {
       fail(`drawing failed: ${e.message}`);
     } finally {
@@ -425,4 +457,5 @@ void main() {
   await waitIdle();
   await measure(30);
   api.ready = true;
+  await prefetch();
 })();
