@@ -13,11 +13,10 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from skimage.metrics import structural_similarity
 
 from lightstage.records.shards import TestImage
 from lightstage.tonemap import tonemap
-from lightstage.training.metrics import SSIM_SIGMA, SSIM_WINDOW, masked
+from lightstage.training.metrics import masked, psnr, ssim_map, ssim_valid
 
 BACKLIT_ANGLE_DEG = 90.0
 
@@ -35,30 +34,13 @@ def is_backlit(image: TestImage, centre: np.ndarray | None = None) -> bool:
 
 def unflagged_psnr(pred: np.ndarray, target: np.ndarray, keep: np.ndarray) -> float | None:
     """PSNR of [0, 1] images over the (H, W) pixels where `keep` is set (None when none is)."""
-    if not keep.any():
-        return None
-    d = np.asarray(pred, np.float64)[keep] - np.asarray(target, np.float64)[keep]
-    mse = float(np.mean(d**2))
-    return float("inf") if mse == 0 else float(10.0 * np.log10(1.0 / mse))
+    return psnr(np.asarray(pred)[keep], np.asarray(target)[keep]) if keep.any() else None
 
 
 def unflagged_ssim(pred: np.ndarray, target: np.ndarray, keep: np.ndarray) -> float | None:
     """Mean SSIM map of [0, 1] RGB images over valid window positions centred where `keep` is set."""
-    _, smap = structural_similarity(
-        np.asarray(pred, np.float64),
-        np.asarray(target, np.float64),
-        gaussian_weights=True,
-        sigma=SSIM_SIGMA,
-        use_sample_covariance=False,
-        data_range=1.0,
-        channel_axis=-1,
-        full=True,
-    )
-    pad = (SSIM_WINDOW - 1) // 2
-    valid = np.zeros(keep.shape, bool)
-    valid[pad : keep.shape[0] - pad, pad : keep.shape[1] - pad] = True
-    sel = valid & keep
-    return float(smap.mean(axis=-1)[sel].mean()) if sel.any() else None
+    sel = ssim_valid(keep.shape) & keep
+    return float(ssim_map(pred, target)[sel].mean()) if sel.any() else None
 
 
 def flag_scores(pred: np.ndarray, image: TestImage, exposure: float) -> dict[str, Any]:

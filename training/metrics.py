@@ -34,6 +34,30 @@ def psnr(pred: np.ndarray, target: np.ndarray, data_range: float = 1.0) -> float
     return float("inf") if mse == 0 else 10.0 * np.log10(data_range**2 / mse)
 
 
+def ssim_map(pred: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Per-pixel SSIM of [0, 1] RGB images, channels averaged, (H, W): the field's window (module docstring),
+    population covariances, K1 0.01, K2 0.03; positions within SSIM_WINDOW // 2 of the border are padding."""
+    _, smap = structural_similarity(
+        np.asarray(pred, np.float64),
+        np.asarray(target, np.float64),
+        gaussian_weights=True,
+        sigma=SSIM_SIGMA,
+        use_sample_covariance=False,
+        data_range=1.0,
+        channel_axis=-1,
+        full=True,
+    )
+    return smap.mean(axis=-1)
+
+
+def ssim_valid(shape: tuple[int, ...]) -> np.ndarray:
+    """(H, W) bool: the window positions SSIM averages over (not within SSIM_WINDOW // 2 of the border)."""
+    pad = (SSIM_WINDOW - 1) // 2
+    valid = np.zeros(shape[:2], bool)
+    valid[pad : shape[0] - pad, pad : shape[1] - pad] = True
+    return valid
+
+
 def ssim(pred: np.ndarray, target: np.ndarray) -> float:
     """SSIM of [0, 1] RGB images as NeRF/3DGS papers report it: Gaussian 11x11 window (sigma 1.5), population
     covariances, K1 0.01, K2 0.03, the mean over the valid (unpadded) window positions, channels averaged."""
