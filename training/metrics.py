@@ -18,6 +18,14 @@ from lightstage.tonemap import paper_tonemap, tonemap
 
 SSIM_SIGMA = 1.5  # Gaussian window; scikit-image truncates at 3.5 sigma -> radius 5 -> 11 x 11
 SSIM_WINDOW = 11
+# scikit-image's arguments for the field's SSIM on [0, 1] RGB (H, W, 3) images
+SSIM_ARGS = {
+    "gaussian_weights": True,
+    "sigma": SSIM_SIGMA,
+    "use_sample_covariance": False,
+    "data_range": 1.0,
+    "channel_axis": -1,
+}
 
 # key suffix -> what is compared (prediction vs target), in [0, 1] after the named tonemap
 CONVENTIONS = {
@@ -38,14 +46,7 @@ def ssim_map(pred: np.ndarray, target: np.ndarray) -> np.ndarray:
     """Per-pixel SSIM of [0, 1] RGB images, channels averaged, (H, W): the field's window (module docstring),
     population covariances, K1 0.01, K2 0.03; positions within SSIM_WINDOW // 2 of the border are padding."""
     _, smap = structural_similarity(
-        np.asarray(pred, np.float64),
-        np.asarray(target, np.float64),
-        gaussian_weights=True,
-        sigma=SSIM_SIGMA,
-        use_sample_covariance=False,
-        data_range=1.0,
-        channel_axis=-1,
-        full=True,
+        np.asarray(pred, np.float64), np.asarray(target, np.float64), full=True, **SSIM_ARGS
     )
     return smap.mean(axis=-1)
 
@@ -62,15 +63,7 @@ def ssim(pred: np.ndarray, target: np.ndarray) -> float:
     """SSIM of [0, 1] RGB images as NeRF/3DGS papers report it: Gaussian 11x11 window (sigma 1.5), population
     covariances, K1 0.01, K2 0.03, the mean over the valid (unpadded) window positions, channels averaged."""
     return float(
-        structural_similarity(
-            np.asarray(pred, np.float64),
-            np.asarray(target, np.float64),
-            gaussian_weights=True,
-            sigma=SSIM_SIGMA,
-            use_sample_covariance=False,
-            data_range=1.0,
-            channel_axis=-1,
-        )
+        structural_similarity(np.asarray(pred, np.float64), np.asarray(target, np.float64), **SSIM_ARGS)
     )
 
 
